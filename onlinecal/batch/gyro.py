@@ -1,0 +1,334 @@
+"""Gyroscope calibration without tools (eqs. 28–31, 34–36) and with a rate table (eq. 33).
+
+* bias: least-squares line fit of the cumulative sum (integrated angle) over the rests (eqs. 34–35);
+* axes: raw rate direction between the 1/3 and 2/3 points of each rotation phase (eqs. 28–31);
+* scale: the turn angle seen by the calibrated accelerometer/magnetometer against the integrated raw
+  rate over each phase (eq. 36);
+* then eq. 36 generalised: all nine entries of the gyro matrix refined so that, over every motion
+  between two rests, the integrated attitude change carries gravity (and the field) from the rest
+  before to the rest after. This uses every transition, not only the phases, and is what makes the
+  tool-free result work on sessions whose turns are about the vertical (the Ferraris procedure).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from ..model import SensorCalibration, decompose
+from .ellipsoid import FitError
+from .segment import Interval, Phase, Segmentation
+from .sensors import StepReport
+
+Array = NDArray[np.float64]
+
+
+def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
+    """Bias o_gyr by an LS line fit to the cumulative sum of the raw rate over rests (eqs. 34–35).
+
+    In a rest the integrated raw rate grows as θ(t) = o·t + c; one common slope over all rests (each
+    with its own intercept). Returns (o (3,), 1σ (3,)) in rad/s; σ from the residual of the rates.
+    """
+    num = np.zeros(3)
+    den = 0.0
+    res_var = []
+    n_tot = 0
+    for s in segs:
+        for iv in s.statics:
+            t = s.data.t_imu[iv.i0 : iv.i1]
+            w = s.data.gyro[iv.i0 : iv.i1]
+            if t.size < 3:
+                continue
+            th = np.concatenate([[np.zeros(3)], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t)[:, None], 0)])
+            tc = t - t.mean()
+            num += tc @ (th - th.mean(0))
+            den += float(tc @ tc)
+            res_var.append(w.var(axis=0) * t.size)
+            n_tot += t.size
+    if den <= 0:
+        raise FitError("gyro bias: no static interval (need a rest to fit eqs. 34–35)")
+    o = num / den
+    sigma = np.sqrt(np.sum(res_var, axis=0) / n_tot / n_tot)
+    return o, sigma
+
+
+def gyro_axes_from_phases(segs: list[Segmentation], o: Array) -> dict[int, tuple[Array, float]]:
+    """Raw direction of each body axis from the phases about it (eqs. 28–31).
+
+    The paper takes the bias-corrected rate at the 1/3 and 2/3 points of a phase; we average it over
+    that middle third (same direction, less noise). Forward and backward phases are pooled so that a
+    bias error cancels. Returns axis → (unit direction, summed weight).
+    """
+    acc: dict[int, Array] = {}
+    wts: dict[int, float] = {}
+    for s in segs:
+        for ph in s.phases:
+            n = ph.i1 - ph.i0
+            a, b = ph.i0 + n // 3, ph.i0 + (2 * n) // 3
+            if b - a < 2:
+                continue
+            v = (s.data.gyro[a:b] - o).mean(axis=0) * ph.sign
+            acc[ph.axis] = acc.get(ph.axis, np.zeros(3)) + v * (b - a)
+            wts[ph.axis] = wts.get(ph.axis, 0.0) + float(b - a)
+    return {k: (v / np.linalg.norm(v), wts[k]) for k, v in acc.items()}
+
+
+def _static_before_after(seg: Segmentation, iv: Interval) -> tuple[Interval, Interval] | None:
+    before = [s for s in seg.statics if s.i1 - 1 == iv.i0]
+    after = [s for s in seg.statics if s.i0 == iv.i1 - 1]
+    return (before[0], after[0]) if before and after else None
+
+
+def _vectors(seg: Segmentation, acc: SensorCalibration | None, mag: SensorCalibration | None,
+             iv: Interval) -> list[tuple[Array, Array, float]]:
+    """Calibrated unit gravity (and field) at the rests around ``iv``: (before, after, 1σ direction)."""
+    ba = _static_before_after(seg, iv)
+    if ba is None:
+        return []
+    out = []
+    d = seg.data
+    for cal, t, x, noise in (
+        (acc, d.t_imu, d.acc, seg.acc_noise),
+        (mag, d.t_mag, d.mag, None),
+    ):
+        if cal is None or x.shape[0] == 0:
+            continue
+        vs = []
+        for st in ba:
+            m = (t >= st.t0) & (t <= st.t1)
+            if m.sum() < 3:
+                break
+            v = cal.apply(x[m])
+            vs.append((v.mean(axis=0), v.std(axis=0).mean() / np.sqrt(m.sum()), np.linalg.norm(v.mean(0))))
+        if len(vs) == 2:
+            (v0, s0, n0), (v1, s1, n1) = vs
+            # A floor on σ: the calibrations themselves are good to ~1e-3.
+            sig = float(np.hypot(np.hypot(s0 / n0, s1 / n1), 1e-3))
+            out.append((v0 / n0, v1 / n1, sig))
+    return out
+
+
+def phase_angle(seg: Segmentation, ph: Phase, acc: SensorCalibration | None,
+                mag: SensorCalibration | None) -> tuple[float, float] | None:
+    """Turn angle of a phase seen by the calibrated accelerometer and magnetometer (eq. 36, left side).
+
+    The angle of the vector's projection onto the plane normal to the phase axis, unwrapped from the
+    rest before to the rest after; a body turning by +θ about e_k sees a world-fixed vector turn by −θ.
+    Accel and mag estimates are averaged with weights from their projected radius. Returns
+    (angle rad, 1σ rad) or None when neither sensor sweeps a usable circle.
+    """
+    ba = _static_before_after(seg, ph)
+    if ba is None:
+        return None
+    k = ph.axis
+    i, j = (k + 1) % 3, (k + 2) % 3
+    d = seg.data
+    ests = []
+    for cal, t, x, lim in ((acc, d.t_imu, d.acc, 0.3), (mag, d.t_mag, d.mag, 0.2)):
+        if cal is None or x.shape[0] == 0:
+            continue
+        m = (t >= ba[0].t0) & (t <= ba[1].t1)
+        if m.sum() < 10:
+            continue
+        v = cal.apply(x[m])
+        scale = np.median(np.linalg.norm(v, axis=1))
+        v = v / scale
+        radius = np.hypot(v[:, i], v[:, j])
+        tt = t[m]
+        inb = tt <= ba[0].t1
+        ina = tt >= ba[1].t0
+        if inb.sum() < 3 or ina.sum() < 3 or np.median(radius) < lim:
+            continue
+        ang = np.unwrap(np.arctan2(v[:, j], v[:, i]))
+        a0 = ang[inb].mean()
+        a1 = ang[ina].mean()
+        sig = float(np.hypot(ang[inb].std() / np.sqrt(inb.sum()), ang[ina].std() / np.sqrt(ina.sum())))
+        sig = max(sig, 1e-4)
+        ests.append((-(a1 - a0), sig))
+    if not ests:
+        return None
+    w = np.array([1 / s**2 for _, s in ests])
+    ang = float(np.sum([a for a, _ in ests] * w) / w.sum())
+    return ang, float(1 / np.sqrt(w.sum()))
+
+
+def gyro_scale_from_phases(segs: list[Segmentation], o: Array, axes: dict[int, tuple[Array, float]],
+                           acc: SensorCalibration | None, mag: SensorCalibration | None) -> dict[int, float]:
+    """c_k = ∫ u_kᵀ(ω_raw − o) dt / φ_k over the phases about axis k (eq. 36). Raw-per-true gain."""
+    num: dict[int, float] = {}
+    den: dict[int, float] = {}
+    for s in segs:
+        for ph in s.phases:
+            if ph.axis not in axes or s.gapped(ph):
+                continue
+            pa = phase_angle(s, ph, acc, mag)
+            if pa is None:
+                continue
+            t = s.data.t_imu[ph.i0 : ph.i1]
+            w = s.data.gyro[ph.i0 : ph.i1] - o
+            integ = float((0.5 * (w[1:] + w[:-1]) * np.diff(t)[:, None]).sum(0) @ axes[ph.axis][0])
+            num[ph.axis] = num.get(ph.axis, 0.0) + integ * np.sign(pa[0])
+            den[ph.axis] = den.get(ph.axis, 0.0) + abs(pa[0])
+    return {k: num[k] / den[k] for k in num if den[k] > 0}
+
+
+# -- eq. 36 generalised: attitude change between rests -----------------------------------------------
+
+def rodrigues(theta: Array) -> Array:
+    """exp([θ]_x) for θ (N, 3) → (N, 3, 3), exact for any angle (sinc forms avoid a branch at 0)."""
+    a = np.linalg.norm(theta, axis=1)
+    s = np.sinc(a / np.pi)[:, None, None]  # sin(a)/a
+    c = (0.5 * np.sinc(a / (2 * np.pi)) ** 2)[:, None, None]  # (1 − cos a)/a²
+    K = np.zeros((theta.shape[0], 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -theta[:, 2], theta[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = theta[:, 2], -theta[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -theta[:, 1], theta[:, 0]
+    return np.eye(3) + s * K + c * (K @ K)
+
+
+def ordered_product(R: Array) -> Array:
+    """R[0] @ R[1] @ … @ R[L-1] along axis 1 for R (S, L, 3, 3) by pairwise tree reduction.
+
+    The product of many small rotations is the attitude change; the tree keeps it vectorised
+    (log₂ L batched matmuls instead of L sequential ones).
+    """
+    while R.shape[1] > 1:
+        if R.shape[1] % 2:
+            R = np.concatenate([R, np.broadcast_to(np.eye(3), (R.shape[0], 1, 3, 3))], axis=1)
+        R = R[:, 0::2] @ R[:, 1::2]
+    return R[:, 0]
+
+
+@dataclass
+class _Transitions:
+    increments: list[Array]  # per motion (n_i, 3): raw-rate·dt minus bias·dt
+    pairs: list[tuple[int, Array, Array, float]]  # (motion index, before, after, σ)
+
+    def buckets(self) -> list[tuple[Array, Array]]:
+        """Motions grouped by power-of-two padded length: (motion indices, increments (S, L, 3)).
+
+        Grouping keeps the zero padding (identity steps) small when one motion is much longer."""
+        lens = np.array([x.shape[0] for x in self.increments])
+        L = 1 << np.ceil(np.log2(np.maximum(lens, 2))).astype(int)
+        out = []
+        for Lb in np.unique(L):
+            ids = np.flatnonzero(L == Lb)
+            arr = np.zeros((ids.size, int(Lb), 3))
+            for j, i in enumerate(ids):
+                arr[j, : lens[i]] = self.increments[i]
+            out.append((ids, arr))
+        return out
+
+
+def _collect_transitions(segs: list[Segmentation], o: Array, acc: SensorCalibration | None,
+                         mag: SensorCalibration | None) -> _Transitions:
+    incs = []
+    pairs = []
+    for s in segs:
+        for iv in s.motions:
+            if s.gapped(iv):
+                continue
+            vecs = _vectors(s, acc, mag, iv)
+            if not vecs:
+                continue
+            t = s.data.t_imu[iv.i0 : iv.i1]
+            w = s.data.gyro[iv.i0 : iv.i1] - o
+            incs.append(0.5 * (w[1:] + w[:-1]) * np.diff(t)[:, None])
+            for v0, v1, sig in vecs:
+                pairs.append((len(incs) - 1, v0, v1, sig))
+    return _Transitions(incs, pairs)
+
+
+def refine_gyro_matrix(segs: list[Segmentation], o: Array, G0: Array, acc: SensorCalibration | None,
+                       mag: SensorCalibration | None) -> tuple[Array, Array, float, int]:
+    """Gyro matrix G (calibrated = G (raw − o)) from every motion between two rests (eq. 36 generalised).
+
+    Residual per transition and reference vector v (gravity, field; unit, body frame):
+    ``v_after − Cᵀ v_before`` with ``C = Π exp([G Δθ_raw]_x)`` the integrated attitude change.
+    Returns (G, covariance of vec(G) (9, 9), residual RMS, number of transitions).
+    """
+    tr = _collect_transitions(segs, o, acc, mag)
+    n_seg = len({p[0] for p in tr.pairs})
+    if len(tr.pairs) * 3 < 12 or n_seg < 4:
+        raise FitError(f"gyro: {n_seg} motion(s) between rests with reference vectors, need ≥ 4")
+    buckets = tr.buckets()
+    n_mot = len(tr.increments)
+    idx = np.array([p[0] for p in tr.pairs])
+    v0 = np.array([p[1] for p in tr.pairs])
+    v1 = np.array([p[2] for p in tr.pairs])
+    sig = np.array([p[3] for p in tr.pairs])
+
+    def resid(g: Array) -> Array:
+        G = g.reshape(3, 3)
+        C = np.empty((n_mot, 3, 3))
+        for ids, arr in buckets:
+            S, L, _ = arr.shape
+            C[ids] = ordered_product(rodrigues(arr.reshape(-1, 3) @ G.T).reshape(S, L, 3, 3))
+        pred = np.einsum("sji,sj->si", C[idx], v0)
+        return ((v1 - pred) / sig[:, None]).ravel()
+
+    sol = least_squares(resid, G0.ravel(), method="lm", x_scale="jac")
+    r = sol.fun
+    dof = max(1, r.size - 9)
+    s2 = float(r @ r / dof)
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * max(s2, 1.0)
+    except np.linalg.LinAlgError:
+        cov = np.full((9, 9), np.inf)
+    rms = float(np.sqrt(np.mean(((r.reshape(-1, 3)) * sig[:, None]) ** 2)))
+    return sol.x.reshape(3, 3), cov, rms, n_seg
+
+
+def fit_gyro_rate_table(raw_means: Array, rates_body: Array) -> SensorCalibration:
+    """Rotation-table variant (eq. 33): known body rates ω_k (K, 3) and mean raw readings (K, 3).
+
+    raw = G⁻¹ ω + o is linear in (G⁻¹, o): one least-squares solve. Needs K ≥ 4 non-coplanar rates.
+    """
+    raw_means = np.asarray(raw_means, float)
+    rates_body = np.asarray(rates_body, float)
+    if raw_means.shape[0] < 4:
+        raise FitError("rate table: need ≥ 4 rate steps")
+    X = np.column_stack([rates_body, np.ones(rates_body.shape[0])])
+    coef, *_ = np.linalg.lstsq(X, raw_means, rcond=None)
+    Ginv = coef[:3].T
+    o = coef[3]
+    return SensorCalibration(o, np.linalg.inv(Ginv))
+
+
+def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: SensorCalibration | None,
+                  rng: np.random.Generator) -> tuple[SensorCalibration, StepReport]:
+    """The tool-free gyro pipeline: bias (34–35) → axes (28–31) → scale (36) → eq. 36 over all motions."""
+    rep = StepReport("gyro")
+    o, sig_o = gyro_bias_cumsum(segs)
+    axes = gyro_axes_from_phases(segs, o)
+    scales = gyro_scale_from_phases(segs, o, axes, acc, mag)
+    rep.figures["phase_axes"] = "".join("xyz"[k] for k in sorted(axes))
+    rep.figures["phase_scales"] = {"xyz"[k]: 1.0 / c for k, c in sorted(scales.items())}
+    cols = []
+    for k in range(3):
+        u = axes[k][0] if k in axes else np.eye(3)[k]
+        c = scales.get(k, np.mean(list(scales.values())) if scales else 1.0)
+        cols.append(c * u)
+    G_paper = np.linalg.inv(np.column_stack(cols))
+    rep.figures["paper_matrix"] = G_paper.tolist()
+    missing = [k for k in range(3) if k not in scales]
+    try:
+        G, cov, rms, n = refine_gyro_matrix(segs, o, G_paper, acc, mag)
+        rep.figures.update({"refined_transitions": n, "refined_residual_rms": rms})
+    except FitError as e:
+        if missing:
+            rep.warnings.append(f"gyro: no usable phase angle about {''.join('xyz'[k] for k in missing)} "
+                                f"and {e}; scale of that axis taken as the mean of the others")
+        G, cov = G_paper, np.full((9, 9), np.nan)
+    sigma: dict[str, list[float]] = {"bias": sig_o.tolist()}
+    if np.all(np.isfinite(cov)):
+        L = np.linalg.cholesky(cov + 1e-30 * np.eye(9))
+        draws = [np.concatenate(decompose((G.ravel() + L @ rng.standard_normal(9)).reshape(3, 3)))
+                 for _ in range(48)]
+        sd = np.std(draws, axis=0)
+        sigma.update({"scale": sd[:3].tolist(), "alpha": sd[3:6].tolist(), "xi": sd[6:].tolist(),
+                      "matrix": np.sqrt(np.diag(cov)).reshape(3, 3).tolist()})
+    return SensorCalibration(o, G, sigma), rep

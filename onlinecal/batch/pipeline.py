@@ -1,0 +1,77 @@
+"""The paper's offline pipeline over one or more logs of one sensor unit: segment → mag → accel → gyro.
+
+Data flow: each log is segmented on its own (rests, motions, rotation phases); the fits then pool
+every log — a campaign is often several files (statics, turns, a sphere).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..io.base import ImuData
+from ..model import Calibration, SensorCalibration
+from ..sim.motion import G0
+from .ellipsoid import FitError
+from .gyro import fit_gyroscope
+from .segment import Segmentation, segment
+from .sensors import StepReport, fit_accelerometer, fit_magnetometer
+
+
+@dataclass
+class BatchResult:
+    calibration: Calibration
+    segmentations: list[Segmentation]
+    steps: dict[str, StepReport]
+    warnings: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        return {
+            "files": [s.data.source for s in self.segmentations],
+            "segments": [
+                {"file": s.data.source, "statics": len(s.statics), "motions": len(s.motions),
+                 "phases": "".join("xyz"[p.axis] for p in s.phases)}
+                for s in self.segmentations
+            ],
+            "steps": {k: v.to_dict() for k, v in self.steps.items()},
+            "warnings": self.warnings,
+        }
+
+
+def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
+    """Calibrate gyro, accel and mag from raw logs of one unit (paper Sec. III).
+
+    A sensor whose step cannot run (no mag in the logs, too few attitudes, no rest) is left out with
+    a warning naming the step; a result without any sensor raises FitError.
+    """
+    rng = np.random.default_rng(seed)
+    segs = [segment(d) for d in logs if d.n_imu > 0]
+    warnings: list[str] = [w for d in logs for w in d.warnings]
+    for s in segs:
+        warnings += s.warnings
+    steps: dict[str, StepReport] = {}
+    mag: SensorCalibration | None = None
+    acc: SensorCalibration | None = None
+    gyro: SensorCalibration | None = None
+    if any(s.data.has_mag for s in segs):
+        try:
+            mag, steps["mag"] = fit_magnetometer(segs, rng)
+        except FitError as e:
+            warnings.append(f"mag step skipped: {e}")
+    try:
+        acc, steps["accel"] = fit_accelerometer(segs, g, rng)
+    except FitError as e:
+        warnings.append(f"accel step skipped: {e}")
+    try:
+        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag, rng)
+    except FitError as e:
+        warnings.append(f"gyro step skipped: {e}")
+    for st in steps.values():
+        warnings += st.warnings
+    if gyro is None and acc is None and mag is None:
+        raise FitError("; ".join(warnings) or "no sensor could be calibrated")
+    res = BatchResult(Calibration(gyro=gyro, accel=acc, mag=mag, source="batch"), segs, steps, warnings)
+    cal = res.calibration.replace(meta={"batch": res.summary()})
+    res.calibration = cal
+    return res

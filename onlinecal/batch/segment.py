@@ -1,0 +1,186 @@
+"""Automatic segmentation: static intervals, motion segments between them, and rotation phases.
+
+Nobody marks sections by hand. Thresholds come from the data itself: the noise floor is the low
+percentile of the windowed standard deviation, so the same code serves a quiet platform and a
+hand-held recording.
+
+A *static interval* is a stretch where gyro and accel vary no more than their noise and the gyro
+stays near its bias (this excludes constant-rate turns about the vertical, which are quiet too).
+A *motion segment* is what lies between two static intervals. A *rotation phase* (paper Sec. III) is a
+motion segment whose body rate keeps one direction close to a sensor axis and turns by at least half
+a revolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..io.base import ImuData
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Interval:
+    """IMU sample rows [i0, i1) and their times."""
+
+    i0: int
+    i1: int
+    t0: float
+    t1: float
+
+    @property
+    def n(self) -> int:
+        return self.i1 - self.i0
+
+    @property
+    def duration(self) -> float:
+        return self.t1 - self.t0
+
+
+@dataclass(frozen=True)
+class Phase(Interval):
+    """A rotation phase about sensor axis ``axis`` (0, 1, 2); ``sign`` +1/−1 is the turn direction
+    in the raw gyro; ``direction`` (3,) the unit raw-rate direction; ``linearity`` the share of the
+    rate energy along it; ``angle`` the raw integrated angle along it (rad, uncalibrated)."""
+
+    axis: int = 0
+    sign: int = 1
+    direction: Array = field(default_factory=lambda: np.zeros(3))
+    linearity: float = 0.0
+    angle: float = 0.0
+
+
+@dataclass
+class Segmentation:
+    """Result for one log: statics, motions (between consecutive statics), phases (a subset of motions)."""
+
+    data: ImuData
+    statics: list[Interval]
+    motions: list[Interval]
+    phases: list[Phase]
+    gyro_noise: float
+    acc_noise: float
+    bias_guess: Array
+    max_gap: float
+    warnings: list[str] = field(default_factory=list)
+
+    def gapped(self, iv: Interval, factor: float = 5.0) -> bool:
+        """True where the logger dropped samples inside ``iv`` (a gap > factor × median period)."""
+        t = self.data.t_imu[iv.i0 : iv.i1]
+        if t.size < 2:
+            return True
+        return bool(np.diff(t).max() > factor * self.max_gap)
+
+
+def moving_std(x: Array, w: int) -> tuple[Array, Array]:
+    """Centered moving mean and std over windows of w samples, (N, k) → (N, k) each, via cumsums."""
+    n = x.shape[0]
+    w = max(2, min(w, n))
+    c1 = np.cumsum(np.vstack([np.zeros((1, x.shape[1])), x]), axis=0)
+    c2 = np.cumsum(np.vstack([np.zeros((1, x.shape[1])), x * x]), axis=0)
+    lo = np.clip(np.arange(n) - w // 2, 0, n - w)
+    mean = (c1[lo + w] - c1[lo]) / w
+    var = (c2[lo + w] - c2[lo]) / w - mean**2
+    return mean, np.sqrt(np.maximum(var, 0.0))
+
+
+def _runs(mask: Array) -> list[tuple[int, int]]:
+    """[start, stop) of each run of True."""
+    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    d = np.diff(m)
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True))
+
+
+def find_statics(
+    data: ImuData,
+    window_s: float = 0.5,
+    min_duration_s: float = 1.0,
+    margin_s: float = 0.15,
+) -> tuple[list[Interval], float, float, Array]:
+    """Static intervals of one log. Returns (intervals, gyro noise σ, accel noise σ, bias guess)."""
+    n = data.n_imu
+    if n < 10:
+        return [], float("nan"), float("nan"), np.zeros(3)
+    rate = data.imu_rate
+    w = max(5, int(round(window_s * rate)))
+    gm, gs = moving_std(data.gyro, w)
+    am, as_ = moving_std(data.acc, w)
+    g_std = np.linalg.norm(gs, axis=1)
+    a_std = np.linalg.norm(as_, axis=1)
+    # Noise floor from the quietest windows; absolute floors keep a quantised, noiseless signal usable.
+    g_floor = max(np.percentile(g_std, 5), 2e-4)
+    a_floor = max(np.percentile(a_std, 5), 2e-3)
+    quiet = (g_std < 4 * g_floor + 2e-3) & (a_std < 4 * a_floor + 0.02)
+    if not quiet.any():
+        return [], g_floor, a_floor, np.zeros(3)
+    bias = np.median(data.gyro[quiet], axis=0)
+    # A constant-rate turn is quiet but not at rest: require the mean rate near the bias too.
+    rate_dev = np.linalg.norm(gm - bias, axis=1)
+    still = quiet & (rate_dev < max(0.02, 8 * g_floor))
+    margin = int(round(margin_s * rate))
+    out: list[Interval] = []
+    t = data.t_imu
+    for i0, i1 in _runs(still):
+        i0, i1 = i0 + margin, i1 - margin
+        if i1 - i0 < 3:
+            continue
+        # A logger gap inside a rest does not break it, but a rest must span real time.
+        if t[i1 - 1] - t[i0] < min_duration_s:
+            continue
+        out.append(Interval(int(i0), int(i1), float(t[i0]), float(t[i1 - 1])))
+    if out:
+        sel = np.concatenate([np.arange(s.i0, s.i1) for s in out])
+        bias = np.median(data.gyro[sel], axis=0)
+    return out, float(g_floor / np.sqrt(3)), float(a_floor / np.sqrt(3)), bias
+
+
+def classify_phase(
+    data: ImuData,
+    iv: Interval,
+    bias: Array,
+    min_linearity: float = 0.95,
+    max_axis_angle_deg: float = 25.0,
+    min_turn_rad: float = np.pi,
+) -> Phase | None:
+    """A motion segment is a rotation phase if its rate keeps one direction near a sensor axis."""
+    w = data.gyro[iv.i0 : iv.i1] - bias
+    t = data.t_imu[iv.i0 : iv.i1]
+    if w.shape[0] < 10:
+        return None
+    dt = np.diff(t)
+    wm = 0.5 * (w[1:] + w[:-1]) * dt[:, None]  # per-step angle increments
+    _, s, Vt = np.linalg.svd(wm, full_matrices=False)
+    u = Vt[0]
+    energy = s**2
+    lin = float(energy[0] / energy.sum()) if energy.sum() > 0 else 0.0
+    k = int(np.argmax(np.abs(u)))
+    if u[k] < 0:
+        u = -u
+    ang = float((wm @ u).sum())
+    if lin < min_linearity or abs(u[k]) < np.cos(np.radians(max_axis_angle_deg)) or abs(ang) < min_turn_rad:
+        return None
+    return Phase(iv.i0, iv.i1, iv.t0, iv.t1, axis=k, sign=1 if ang > 0 else -1, direction=u,
+                 linearity=lin, angle=ang)
+
+
+def segment(data: ImuData) -> Segmentation:
+    """Segment one log into statics, motions and rotation phases (no hand marking)."""
+    statics, g_noise, a_noise, bias = find_statics(data)
+    warnings: list[str] = []
+    motions: list[Interval] = []
+    t = data.t_imu
+    for a, b in zip(statics[:-1], statics[1:], strict=True):
+        # The motion runs from the last rest sample to the first of the next rest, so that its
+        # integral covers the whole turn.
+        i0, i1 = a.i1 - 1, b.i0 + 1
+        motions.append(Interval(i0, i1, float(t[i0]), float(t[i1 - 1])))
+    phases = [p for p in (classify_phase(data, m, bias) for m in motions) if p is not None]
+    med = float(np.median(np.diff(t))) if data.n_imu > 1 else float("nan")
+    if not statics:
+        warnings.append(f"{data.source}: no static interval found")
+    seg = Segmentation(data, statics, motions, phases, g_noise, a_noise, bias, med, warnings)
+    return seg

@@ -1,0 +1,236 @@
+"""Sensor synthesis: the paper's error model (``onlinecal.model``) applied to the platform's motion.
+
+raw = calibration.inv().apply(truth) + white noise, then ADC quantisation and range clipping of a
+typical MEMS part (ICM-20602-class IMU, IST8310-class magnetometer). Effects from the contract's
+vocabulary (``onlinecal.sim.effects``) act on the raw signals between the model and the noise.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..io.base import ImuData
+from ..model import Calibration, SensorCalibration
+from .motion import G0, MotionSample, Trajectory, flight_trajectory, paper_trajectory
+
+Array = NDArray[np.float64]
+TRUTH_SCHEMA = "onlinecal.truth/1"
+
+# The paper's gyroscope figures (Table II): bias rad/s and scale (calibrated = S · raw).
+PAPER_GYRO_BIAS = (0.0027, 0.1605, 0.0660)
+PAPER_GYRO_SCALE = (1.1526, 1.1327, 1.1425)
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """Noise and ADC of one sensor. ``density`` white-noise density (unit/√Hz); ``lsb`` quantum;
+    ``full_scale`` clipping limit (unit); ``floor`` per-sample noise independent of rate."""
+
+    density: float
+    lsb: float
+    full_scale: float
+    floor: float = 0.0
+
+    def sigma(self, rate: float) -> float:
+        """Per-sample white-noise σ at ``rate`` Hz (Nyquist bandwidth rate/2)."""
+        return float(np.hypot(self.density * np.sqrt(rate / 2.0), self.floor))
+
+
+# ICM-20602-class: gyro 4 mdps/√Hz at ±1000 dps (16 bit), accel 100 µg/√Hz at ±8 g; mag IST8310-class.
+GYRO_SPEC = SensorSpec(density=np.radians(0.004), lsb=np.radians(2000 / 65536), full_scale=np.radians(1000))
+ACCEL_SPEC = SensorSpec(density=100e-6 * G0, lsb=16 * G0 / 65536, full_scale=8 * G0)
+MAG_SPEC = SensorSpec(density=0.0, lsb=0.0003, full_scale=4.0, floor=0.0006)
+
+FIELD_GAUSS = 0.48  # local field strength (central Europe)
+FIELD_DIP_DEG = 64.0
+
+
+def field_world(dip_deg: float = FIELD_DIP_DEG) -> Array:
+    """Unit magnetic field in the world frame (ENU: north along y, dip downwards)."""
+    d = np.radians(dip_deg)
+    return np.array([0.0, np.cos(d), -np.sin(d)])
+
+
+def paper_truth(rng: np.random.Generator) -> Calibration:
+    """Errors of the paper's magnitudes, perturbed per seed so no test can pass on one fixed answer.
+
+    Gyro bias and scale as in the paper (±5 %), misalignments of about a degree, large hard iron
+    (about half the field) and soft iron (±10 % scale, ~1° non-orthogonality).
+    """
+    deg = np.pi / 180
+
+    def around(v: tuple[float, ...], rel: float) -> Array:
+        return np.asarray(v) * (1 + rng.uniform(-rel, rel, 3))
+
+    gyro = SensorCalibration.from_params(
+        around(PAPER_GYRO_BIAS, 0.05), around(PAPER_GYRO_SCALE, 0.01),
+        rng.normal(0, 1.0, 3) * deg, rng.normal(0, 0.5, 3) * deg,
+    )
+    accel = SensorCalibration.from_params(
+        rng.uniform(-0.4, 0.4, 3), 1 + rng.uniform(-0.03, 0.03, 3),
+        rng.normal(0, 1.0, 3) * deg, rng.normal(0, 0.5, 3) * deg,
+    )
+    soft = np.array([1.08, 0.91, 1.03]) * (1 + rng.uniform(-0.03, 0.03, 3))
+    mag = SensorCalibration.from_params(
+        rng.uniform(-0.25, 0.25, 3), 1.0 / (FIELD_GAUSS * soft),
+        rng.normal(0, 1.5, 3) * deg, rng.normal(0, 1.0, 3) * deg,
+    )
+    return Calibration(gyro=gyro, accel=accel, mag=mag, source="truth")
+
+
+@dataclass
+class Truth:
+    """What the simulator knows and the estimators must find."""
+
+    calibration: Calibration
+    profile: str
+    seed: int
+    imu_rate: float
+    mag_rate: float
+    gravity: float = G0
+    field_world: list[float] = field(default_factory=lambda: field_world().tolist())
+    field_gauss: float = FIELD_GAUSS
+    noise: dict[str, float] = field(default_factory=dict)
+    segments: list[dict] = field(default_factory=list)
+    effects: list[dict] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "schema": TRUTH_SCHEMA,
+            "profile": self.profile,
+            "seed": self.seed,
+            "imu_rate": self.imu_rate,
+            "mag_rate": self.mag_rate,
+            "gravity": self.gravity,
+            "field_world": list(self.field_world),
+            "field_gauss": self.field_gauss,
+            "noise": self.noise,
+            "segments": self.segments,
+            "effects": self.effects,
+            "calibration": self.calibration.to_dict(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Truth:
+        if d.get("schema") != TRUTH_SCHEMA:
+            raise ValueError(f"not a truth file (schema {d.get('schema')!r})")
+        kw = {k: d[k] for k in ("profile", "seed", "imu_rate", "mag_rate", "gravity", "field_world",
+                                 "field_gauss", "noise", "segments", "effects") if k in d}
+        return cls(calibration=Calibration.from_dict(d["calibration"]), **kw)
+
+    def save(self, path: str | Path) -> None:
+        p = Path(path)
+        tmp = p.with_name(p.name + ".tmp")
+        tmp.write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        tmp.replace(p)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Truth:
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+
+@dataclass
+class SimContext:
+    """Everything an effect may read or change, per clock. Raw arrays are modified in place."""
+
+    t_imu: Array
+    t_mag: Array
+    motion_imu: MotionSample
+    motion_mag: MotionSample
+    gyro: Array  # raw, before noise
+    acc: Array
+    mag: Array
+    temp: Array
+    truth: Calibration
+    rng: np.random.Generator
+    imu_rate: float
+    mag_rate: float
+    specs: dict[str, SensorSpec]
+    noise_scale: dict[str, float] = field(default_factory=lambda: {"gyro": 1.0, "accel": 1.0, "mag": 1.0})
+
+
+def sample_times(duration: float, imu_rate: float, mag_rate: float) -> tuple[Array, Array]:
+    """IMU ticks at ``imu_rate``; mag on every k-th IMU tick if the rates divide, else on its own clock."""
+    t_imu = np.arange(int(np.floor(duration * imu_rate)) + 1) / imu_rate
+    k = imu_rate / mag_rate
+    if abs(k - round(k)) < 1e-9:
+        t_mag = t_imu[1 :: int(round(k))]
+    else:
+        t_mag = 0.0037 + np.arange(int(np.floor((duration - 0.0037) * mag_rate)) + 1) / mag_rate
+    return t_imu, t_mag
+
+
+def quantise(x: Array, spec: SensorSpec) -> Array:
+    y = np.clip(x, -spec.full_scale, spec.full_scale)
+    return np.round(y / spec.lsb) * spec.lsb if spec.lsb > 0 else y
+
+
+def make_trajectory(profile: str, rng: np.random.Generator, duration: float | None) -> Trajectory:
+    if profile == "paper":
+        return paper_trajectory(rng)
+    if profile == "flight":
+        return flight_trajectory(rng, duration or 300.0)
+    raise ValueError(f"unknown profile {profile!r} (paper, flight)")
+
+
+@dataclass
+class Simulation:
+    data: ImuData
+    truth: Truth
+    trajectory: Trajectory
+
+
+def simulate(
+    profile: str = "paper",
+    seed: int = 0,
+    duration: float | None = None,
+    imu_rate: float = 100.0,
+    mag_rate: float = 50.0,
+    effects: list[Any] | tuple[Any, ...] = (),
+    truth: Calibration | None = None,
+    noise: float = 1.0,
+) -> Simulation:
+    """Simulate a session. Returns raw data (ImuData), the truth and the trajectory.
+
+    ``duration`` cuts the paper profile (or sets the flight length); ``noise`` scales every sensor's
+    noise; ``effects`` are objects with ``apply(ctx: SimContext)`` and ``describe() -> dict``
+    (``onlinecal.sim.effects.parse_effect`` makes them from ``NAME:key=value`` strings).
+    """
+    rng = np.random.default_rng(seed)
+    cal = truth if truth is not None else paper_truth(rng)
+    traj = make_trajectory(profile, rng, duration)
+    T = traj.duration if duration is None else min(duration, traj.duration)
+    t_imu, t_mag = sample_times(T, imu_rate, mag_rate)
+    mi, mm = traj.evaluate(t_imu), traj.evaluate(t_mag)
+    h_W = field_world()
+    h_B = np.einsum("nji,j->ni", mm.R, h_W)
+    assert cal.gyro is not None and cal.accel is not None and cal.mag is not None
+    temp = 25.0 + 5.0 * (1 - np.exp(-t_imu / 120.0))
+    ctx = SimContext(
+        t_imu, t_mag, mi, mm,
+        cal.gyro.inv().apply(mi.omega), cal.accel.inv().apply(mi.f), cal.mag.inv().apply(h_B), temp,
+        cal, rng, imu_rate, mag_rate, {"gyro": GYRO_SPEC, "accel": ACCEL_SPEC, "mag": MAG_SPEC},
+    )
+    for eff in effects:
+        eff.apply(ctx)
+    sig = {
+        "gyro": GYRO_SPEC.sigma(imu_rate) * noise * ctx.noise_scale["gyro"],
+        "accel": ACCEL_SPEC.sigma(imu_rate) * noise * ctx.noise_scale["accel"],
+        "mag": MAG_SPEC.sigma(mag_rate) * noise * ctx.noise_scale["mag"],
+    }
+    gyro = quantise(ctx.gyro + rng.normal(0, sig["gyro"], ctx.gyro.shape), GYRO_SPEC)
+    acc = quantise(ctx.acc + rng.normal(0, sig["accel"], ctx.acc.shape), ACCEL_SPEC)
+    mag = quantise(ctx.mag + rng.normal(0, sig["mag"], ctx.mag.shape), MAG_SPEC)
+    tmp = np.round((ctx.temp + rng.normal(0, 0.02, ctx.temp.shape)) * 100) / 100
+    data = ImuData(ctx.t_imu, gyro, acc, tmp, ctx.t_mag, mag, f"sim:{profile}:{seed}")
+    tr = Truth(
+        cal, profile, seed, imu_rate, mag_rate, noise=sig, segments=traj.annotations(),
+        effects=[e.describe() for e in effects], field_world=h_W.tolist(),
+    )
+    return Simulation(data, tr, traj)

@@ -90,9 +90,9 @@ def _vectors(seg: Segmentation, acc: SensorCalibration | None, mag: SensorCalibr
         return []
     out = []
     d = seg.data
-    for cal, t, x, noise in (
-        (acc, d.t_imu, d.acc, seg.acc_noise),
-        (mag, d.t_mag, d.mag, None),
+    for cal, t, x in (
+        (acc, d.t_imu, d.acc),
+        (mag, d.t_mag, d.mag),
     ):
         if cal is None or x.shape[0] == 0:
             continue

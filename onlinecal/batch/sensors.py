@@ -106,7 +106,9 @@ def _acc_samples(seg: Segmentation, ph: Phase) -> Array:
     return _lpf(seg.data.acc[ph.i0 : ph.i1], w)
 
 
-def fit_magnetometer(segs: list[Segmentation], rng: np.random.Generator) -> tuple[SensorCalibration, StepReport]:
+def fit_magnetometer(
+    segs: list[Segmentation], rng: np.random.Generator
+) -> tuple[SensorCalibration, StepReport]:
     """Magnetometer: SVD ellipsoid fit (eqs. 19–24) → LM on eq. 17 → T_R,mag from phases (eqs. 25–27).
 
     Every mag sample of every log counts for the ellipsoid; the field norm is 1 by definition.

@@ -122,15 +122,31 @@ def _euler_zyx(R: Array) -> Array:
 def decompose(matrix: ArrayLike) -> tuple[Array, Array, Array]:
     """Split a correction matrix into (scale, alpha, xi) with matrix = S T_R(alpha) T_N(xi), exact forms.
 
-    Inverse of :func:`compose` (eqs. 2–6). The start point comes from the polar decomposition, so
+    Inverse of :func:`compose` (eqs. 2–6). A matrix with negative determinant (an axis whose sign is
+    inverted) gets a negative scale on that axis. The start point comes from the polar decomposition, so
     large rotations (a sensor mounted at 90°) decompose as well as small ones; the 9 equations in
     9 unknowns are then solved to machine precision by Gauss–Newton (scipy least_squares).
     """
     M = np.asarray(matrix, dtype=float)
     if M.shape != (3, 3) or not np.all(np.isfinite(M)):
         raise ValueError("matrix must be a finite 3x3 array")
-    if np.linalg.det(M) <= 0:
-        raise ValueError("matrix must have a positive determinant (a reflection is not a calibration)")
+    det = np.linalg.det(M)
+    if det == 0:
+        raise ValueError("matrix is singular")
+    if det < 0:
+        # An inverted axis (mounting or driver error): a negative scale on the axis whose flip leaves
+        # the smallest rotation.
+        best = None
+        for k in range(3):
+            F = np.eye(3)
+            F[k, k] = -1.0
+            s, a, x = decompose(F @ M)
+            if best is None or np.linalg.norm(a) < np.linalg.norm(best[1]):
+                s = s.copy()
+                s[k] = -s[k]
+                best = (s, a, x)
+        assert best is not None
+        return best
     U, _, Vt = np.linalg.svd(M)
     R0 = U @ Vt
     x0 = np.concatenate([np.linalg.norm(M, axis=1), _euler_zyx(R0), np.zeros(3)])

@@ -95,7 +95,7 @@ def fit_norm_lm(
     """Geometric fit of ‖M (x − o)‖ = r by Levenberg–Marquardt (eq. 17; eq. 32 for the accelerometer).
 
     ``model``: ``"full"`` (o + symmetric M, 9 parameters), ``"diag"`` (o + diagonal M, 6) or
-    ``"bias"`` (o + one common scale, 4) — the reduced models serve when the data cannot carry all
+    ``"bias"`` (o + one common scale, 4) or ``"offset"`` (o alone, M fixed to M0, 3) — the reduced models serve when the data cannot carry all
     nine. One pass of outlier rejection at ``reject_sigma`` × MAD, then a refit.
     """
     x = np.asarray(x, float)
@@ -106,12 +106,16 @@ def fit_norm_lm(
             return o, sym_from_vec(p[3:9])
         if model == "diag":
             return o, np.diag(p[3:6])
+        if model == "offset":
+            return o, M0
         return o, np.eye(3) * p[3]
 
     if model == "full":
         p0 = np.concatenate([o0, M0[_IU]])
     elif model == "diag":
         p0 = np.concatenate([o0, np.diag(M0)])
+    elif model == "offset":
+        p0 = np.asarray(o0, float).copy()
     else:
         p0 = np.concatenate([o0, [np.trace(M0) / 3]])
     if x.shape[0] < p0.size:
@@ -148,7 +152,7 @@ def fit_norm_lm(
     elif model == "diag":
         for j, idx in enumerate((0, 3, 5)):
             T[3 + idx, 3 + j] = 1
-    else:
+    elif model == "bias":
         T[[3, 6, 8], 3] = 1
     o, M = unpack(sol.x)
     return NormFit(o, M, T @ cov_p @ T.T, float(np.sqrt(np.mean(res**2))), keep, p0.size)

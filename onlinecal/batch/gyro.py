@@ -21,7 +21,7 @@ from scipy.optimize import least_squares
 from ..model import SensorCalibration, decompose
 from .ellipsoid import FitError
 from .segment import Interval, Phase, Segmentation
-from .sensors import StepReport
+from .sensors import StepReport, sqrt_psd
 
 Array = NDArray[np.float64]
 
@@ -37,7 +37,7 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
     res_var = []
     n_tot = 0
     for s in segs:
-        for iv in s.statics:
+        for iv in s.rests:
             t = s.data.t_imu[iv.i0 : iv.i1]
             w = s.data.gyro[iv.i0 : iv.i1]
             if t.size < 3:
@@ -71,6 +71,8 @@ def gyro_axes_from_phases(segs: list[Segmentation], o: Array) -> dict[int, tuple
             if b - a < 2:
                 continue
             v = (s.data.gyro[a:b] - o).mean(axis=0) * ph.sign
+            if v @ ph.direction <= 0:
+                continue  # the middle third is not turning the phase's way (a hand-held wobble)
             acc[ph.axis] = acc.get(ph.axis, np.zeros(3)) + v * (b - a)
             wts[ph.axis] = wts.get(ph.axis, 0.0) + float(b - a)
     return {k: (v / np.linalg.norm(v), wts[k]) for k, v in acc.items()}
@@ -325,7 +327,7 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
         G, cov = G_paper, np.full((9, 9), np.nan)
     sigma: dict[str, list[float]] = {"bias": sig_o.tolist()}
     if np.all(np.isfinite(cov)):
-        L = np.linalg.cholesky(cov + 1e-30 * np.eye(9))
+        L = sqrt_psd(cov)
         draws = [np.concatenate(decompose((G.ravel() + L @ rng.standard_normal(9)).reshape(3, 3)))
                  for _ in range(48)]
         sd = np.std(draws, axis=0)

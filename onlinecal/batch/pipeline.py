@@ -15,8 +15,8 @@ from ..model import Calibration, SensorCalibration
 from ..sim.motion import G0
 from .ellipsoid import FitError
 from .gyro import fit_gyroscope
-from .segment import Segmentation, segment
-from .sensors import StepReport, fit_accelerometer, fit_magnetometer
+from .segment import Segmentation, noise_floors, segment
+from .sensors import StepReport, distinct_directions, fit_accelerometer, fit_magnetometer, static_means
 
 
 @dataclass
@@ -46,10 +46,32 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
     a warning naming the step; a result without any sensor raises FitError.
     """
     rng = np.random.default_rng(seed)
-    segs = [segment(d) for d in logs if d.n_imu > 0]
+    logs = [d for d in logs if d.n_imu > 0]
+    if not logs:
+        raise FitError("no IMU samples in the logs")
     warnings: list[str] = [w for d in logs for w in d.warnings]
+    floors = noise_floors(logs)
+    segs = [segment(d, floors) for d in logs]
+    # Too few true rests (hand-held campaigns): fall back to quasi-static rests for the fits that need
+    # attitudes and rest-to-rest motions; the gyro bias keeps the strict rests.
+    a_means, _ = static_means(segs)
+    if a_means.shape[0] == 0 or distinct_directions(a_means) < 9:
+        with_rest = [s for s in segs if s.statics]
+        bias = np.median(np.concatenate([s.data.gyro[i.i0:i.i1] for s in with_rest for i in s.statics]),
+                         axis=0) if with_rest else None
+        relaxed = [segment(d, floors, relaxed=True, bias=bias) for d in logs]
+        ra, _ = static_means(relaxed)
+        if ra.shape[0] and distinct_directions(ra) > (distinct_directions(a_means) if a_means.size else 0):
+            warnings.append(
+                f"only {distinct_directions(a_means) if a_means.size else 0} distinct attitudes at rest: "
+                f"accelerometer and gyro-scale steps use quasi-static rests ({distinct_directions(ra)} "
+                "attitudes; accel std < 0.25 m/s², rate < 0.1 rad/s)")
+            for s_strict, s_rel in zip(segs, relaxed, strict=True):
+                s_rel.bias_rests = s_strict.statics
+            segs = relaxed
     for s in segs:
         warnings += s.warnings
+    warnings = list(dict.fromkeys(warnings))
     steps: dict[str, StepReport] = {}
     mag: SensorCalibration | None = None
     acc: SensorCalibration | None = None

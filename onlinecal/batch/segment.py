@@ -67,6 +67,12 @@ class Segmentation:
     bias_guess: Array
     max_gap: float
     warnings: list[str] = field(default_factory=list)
+    bias_rests: list[Interval] | None = None  # strict rests for the gyro bias when statics are relaxed
+
+    @property
+    def rests(self) -> list[Interval]:
+        """True rests (for the gyro bias): the strict statics even when ``statics`` are quasi-static."""
+        return self.statics if self.bias_rests is None else self.bias_rests
 
     def gapped(self, iv: Interval, factor: float = 5.0) -> bool:
         """True where the logger dropped samples inside ``iv`` (a gap > factor × median period)."""
@@ -95,25 +101,52 @@ def _runs(mask: Array) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True))
 
 
+WINDOW_S = 0.5
+
+
+def _window_std(data: ImuData, window_s: float) -> tuple[Array, Array, Array]:
+    w = max(5, int(round(window_s * data.imu_rate)))
+    gm, gs = moving_std(data.gyro, w)
+    _, as_ = moving_std(data.acc, w)
+    return gm, np.linalg.norm(gs, axis=1), np.linalg.norm(as_, axis=1)
+
+
+def noise_floors(logs: list[ImuData], window_s: float = WINDOW_S) -> tuple[float, float]:
+    """Windowed-std noise floors (gyro rad/s, accel m/s², summed over axes) of one sensor unit.
+
+    The 5th percentile of the windowed std of every log, and the smallest over logs: a log that
+    hardly rests (a hand-held turn) would otherwise take its motion for noise. Absolute floors keep a
+    quantised, noiseless signal usable.
+    """
+    g, a = [], []
+    for d in logs:
+        if d.n_imu >= 10:
+            _, gs, as_ = _window_std(d, window_s)
+            g.append(np.percentile(gs, 5))
+            a.append(np.percentile(as_, 5))
+    return max(min(g, default=0.0), 2e-4), max(min(a, default=0.0), 2e-3)
+
+
 def find_statics(
     data: ImuData,
-    window_s: float = 0.5,
+    floors: tuple[float, float] | None = None,
+    window_s: float = WINDOW_S,
     min_duration_s: float = 1.0,
     margin_s: float = 0.15,
+    relaxed: bool = False,
 ) -> tuple[list[Interval], float, float, Array]:
-    """Static intervals of one log. Returns (intervals, gyro noise σ, accel noise σ, bias guess)."""
+    """Static intervals of one log. Returns (intervals, gyro noise σ, accel noise σ, bias guess).
+
+    ``floors``: the unit's (gyro, accel) windowed-std floors from :func:`noise_floors`; by default
+    this log's own. ``relaxed``: quasi-static instead — a hand that holds still: accel std below
+    0.25 m/s² (gravity direction good to ~1.5°) and mean rate within 0.1 rad/s of the bias, for 0.5 s.
+    """
     n = data.n_imu
     if n < 10:
         return [], float("nan"), float("nan"), np.zeros(3)
     rate = data.imu_rate
-    w = max(5, int(round(window_s * rate)))
-    gm, gs = moving_std(data.gyro, w)
-    am, as_ = moving_std(data.acc, w)
-    g_std = np.linalg.norm(gs, axis=1)
-    a_std = np.linalg.norm(as_, axis=1)
-    # Noise floor from the quietest windows; absolute floors keep a quantised, noiseless signal usable.
-    g_floor = max(np.percentile(g_std, 5), 2e-4)
-    a_floor = max(np.percentile(a_std, 5), 2e-3)
+    gm, g_std, a_std = _window_std(data, window_s)
+    g_floor, a_floor = floors if floors is not None else noise_floors([data], window_s)
     quiet = (g_std < 4 * g_floor + 2e-3) & (a_std < 4 * a_floor + 0.02)
     if not quiet.any():
         return [], g_floor, a_floor, np.zeros(3)
@@ -121,6 +154,9 @@ def find_statics(
     # A constant-rate turn is quiet but not at rest: require the mean rate near the bias too.
     rate_dev = np.linalg.norm(gm - bias, axis=1)
     still = quiet & (rate_dev < max(0.02, 8 * g_floor))
+    if relaxed:
+        still = (a_std < max(0.25, 4 * a_floor + 0.02)) & (rate_dev < 0.1)
+        min_duration_s = min(min_duration_s, 0.5)
     margin = int(round(margin_s * rate))
     out: list[Interval] = []
     t = data.t_imu
@@ -167,9 +203,15 @@ def classify_phase(
                  linearity=lin, angle=ang)
 
 
-def segment(data: ImuData) -> Segmentation:
-    """Segment one log into statics, motions and rotation phases (no hand marking)."""
-    statics, g_noise, a_noise, bias = find_statics(data)
+def segment(data: ImuData, floors: tuple[float, float] | None = None, relaxed: bool = False,
+            bias: Array | None = None) -> Segmentation:
+    """Segment one log into statics, motions and rotation phases (no hand marking).
+
+    ``relaxed`` segments at quasi-static rests (see :func:`find_statics`); ``bias`` overrides the
+    log's own rest-based gyro bias guess (a log that never rests has none).
+    """
+    statics, g_noise, a_noise, own_bias = find_statics(data, floors, relaxed=relaxed)
+    bias = own_bias if bias is None else bias
     warnings: list[str] = []
     motions: list[Interval] = []
     t = data.t_imu
@@ -178,7 +220,12 @@ def segment(data: ImuData) -> Segmentation:
         # integral covers the whole turn.
         i0, i1 = a.i1 - 1, b.i0 + 1
         motions.append(Interval(i0, i1, float(t[i0]), float(t[i1 - 1])))
-    phases = [p for p in (classify_phase(data, m, bias) for m in motions) if p is not None]
+    candidates = list(motions)
+    if not statics and data.n_imu > 10:
+        # A log that never rests may still be one turn (a hand-held "rotate 360°" recording): its
+        # samples serve the alignment of eqs. 25–27, though without rests it cannot give an angle.
+        candidates.append(Interval(0, data.n_imu, float(t[0]), float(t[-1])))
+    phases = [p for p in (classify_phase(data, m, bias) for m in candidates) if p is not None]
     med = float(np.median(np.diff(t))) if data.n_imu > 1 else float("nan")
     if not statics:
         warnings.append(f"{data.source}: no static interval found")

@@ -28,6 +28,12 @@ class StepReport:
         return {"figures": self.figures, "warnings": list(self.warnings)}
 
 
+def sqrt_psd(cov: Array) -> Array:
+    """L with L Lᵀ = cov for a symmetric positive semi-definite cov (reduced fits are singular)."""
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    return V * np.sqrt(np.clip(w, 0.0, None))
+
+
 def propagate_sigma(
     o: Array, M: Array, cov9: Array, Q: Array, sig_align: float, rng: np.random.Generator, n: int = 64
 ) -> dict[str, list[float]]:
@@ -35,7 +41,7 @@ def propagate_sigma(
     triangle of symmetric M) and an isotropic alignment error of ``sig_align`` rad."""
     if not np.all(np.isfinite(cov9)):
         return {"bias": np.sqrt(np.abs(np.diag(cov9))[:3]).tolist()}
-    L = np.linalg.cholesky(cov9 + 1e-30 * np.eye(9))
+    L = sqrt_psd(cov9)
     p0 = np.concatenate([o, M[np.triu_indices(3)]])
     draws = []
     for _ in range(n):
@@ -144,7 +150,7 @@ def static_means(segs: list[Segmentation]) -> tuple[Array, Array]:
     return np.array(a).reshape(-1, 3), np.array(g).reshape(-1, 3)
 
 
-def _distinct_directions(v: Array, min_angle_deg: float = 10.0) -> int:
+def distinct_directions(v: Array, min_angle_deg: float = 10.0) -> int:
     """How many of the directions of v (K, 3) differ by more than min_angle from all before them."""
     u = v / np.linalg.norm(v, axis=1, keepdims=True)
     kept: list[Array] = []
@@ -167,18 +173,16 @@ def fit_accelerometer(
     """
     rep = StepReport("accel")
     a, _ = static_means(segs)
-    ndir = _distinct_directions(a) if a.shape[0] else 0
+    ndir = distinct_directions(a) if a.shape[0] else 0
     rep.figures["static_positions"] = int(a.shape[0])
     rep.figures["distinct_attitudes"] = ndir
-    if ndir < 4:
-        raise FitError(f"accelerometer: {ndir} distinct static attitude(s), need ≥ 4")
-    model = "full" if ndir >= 9 else "diag" if ndir >= 6 else "bias"
+    if ndir < 3:
+        raise FitError(f"accelerometer: {ndir} distinct static attitude(s), need ≥ 3")
+    model = "full" if ndir >= 9 else "diag" if ndir >= 6 else "bias" if ndir >= 4 else "offset"
     if model != "full":
-        rep.warnings.append(
-            f"accel: only {ndir} distinct static attitudes; fitted {model} model "
-            "(bias + per-axis scale)" if model == "diag" else
-            f"accel: only {ndir} distinct static attitudes; fitted bias + common scale only"
-        )
+        what = {"diag": "bias + per-axis scale", "bias": "bias + common scale",
+                "offset": "bias only (scale 1, no misalignment)"}[model]
+        rep.warnings.append(f"accel: only {ndir} distinct static attitudes; fitted {what}")
     try:
         o0, M0 = fit_ellipsoid_svd(a) if a.shape[0] >= 10 else (np.zeros(3), np.eye(3))
         M0 = M0 * g
@@ -199,4 +203,4 @@ def fit_accelerometer(
     return SensorCalibration(fit.o, M, sig), rep
 
 
-__all__ = ["fit_magnetometer", "fit_accelerometer", "static_means", "StepReport", "sqrtm_spd"]
+__all__ = ["fit_magnetometer", "fit_accelerometer", "static_means", "StepReport", "sqrtm_spd", "sqrt_psd"]

@@ -316,15 +316,25 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
         cols.append(c * u)
     G_paper = np.linalg.inv(np.column_stack(cols))
     rep.figures["paper_matrix"] = G_paper.tolist()
-    missing = [k for k in range(3) if k not in scales]
+    missing = [k for k in range(3) if k not in scales or k not in axes]
     try:
-        G, cov, rms, n = refine_gyro_matrix(segs, o, G_paper, acc, mag)
-        rep.figures.update({"refined_transitions": n, "refined_residual_rms": rms})
+        G_ref, cov, rms, n = refine_gyro_matrix(segs, o, G_paper, acc, mag)
+        rep.figures.update({"refined_transitions": n, "refined_residual_rms": rms,
+                            "refined_vs_paper": float(np.linalg.norm(G_ref - G_paper) / np.linalg.norm(G_paper))})
     except FitError as e:
+        G_ref, cov = None, np.full((9, 9), np.nan)
+        rep.figures["refined_transitions"] = 0
         if missing:
-            rep.warnings.append(f"gyro: no usable phase angle about {''.join('xyz'[k] for k in missing)} "
-                                f"and {e}; scale of that axis taken as the mean of the others")
-        G, cov = G_paper, np.full((9, 9), np.nan)
+            rep.warnings.append(f"gyro: no usable phase about {''.join('xyz'[k] for k in missing)} "
+                                f"and {e}; that axis keeps scale of the others' mean and no misalignment")
+    # The paper's phase-based estimate wherever phases cover all three axes (it is the more precise:
+    # it does not inherit the accel/mag alignment); the all-transitions fit otherwise.
+    G = G_paper if (not missing or G_ref is None) else G_ref
+    rep.figures["method"] = "phases (eqs. 28-31, 36)" if G is G_paper else "all transitions (eq. 36 generalised)"
+    if G is G_paper and G_ref is not None:
+        # σ from the phase scatter is not available in closed form; the transitions fit's covariance
+        # is an upper bound on it.
+        pass
     sigma: dict[str, list[float]] = {"bias": sig_o.tolist()}
     if np.all(np.isfinite(cov)):
         L = sqrt_psd(cov)

@@ -203,6 +203,28 @@ def classify_phase(
                  linearity=lin, angle=ang)
 
 
+def consensus_phases(phases: list[Phase], max_deg: float = 3.0) -> list[Phase]:
+    """Keep, per axis, the phases whose raw rate direction agrees with the majority.
+
+    A transition between two attitudes can be nearly a one-axis turn; taken for a phase it would tilt
+    the alignment of eqs. 25–27. True phases about one axis agree to the noise; the medoid direction
+    (most turn angle within ``max_deg``) wins, the rest are dropped.
+    """
+    out: list[Phase] = []
+    cos_lim = np.cos(np.radians(max_deg))
+    for k in range(3):
+        ph = [p for p in phases if p.axis == k]
+        if len(ph) <= 1:
+            out += ph
+            continue
+        U = np.array([p.direction for p in ph])
+        w = np.array([abs(p.angle) for p in ph])
+        close = (U @ U.T) >= cos_lim
+        best = int(np.argmax(close @ w))
+        out += [p for p, c in zip(ph, close[best], strict=True) if c]
+    return sorted(out, key=lambda p: p.i0)
+
+
 def segment(data: ImuData, floors: tuple[float, float] | None = None, relaxed: bool = False,
             bias: Array | None = None) -> Segmentation:
     """Segment one log into statics, motions and rotation phases (no hand marking).
@@ -225,8 +247,8 @@ def segment(data: ImuData, floors: tuple[float, float] | None = None, relaxed: b
         # A log that never rests may still be one turn (a hand-held "rotate 360°" recording): its
         # samples serve the alignment of eqs. 25–27, though without rests it cannot give an angle.
         candidates.append(Interval(0, data.n_imu, float(t[0]), float(t[-1])))
-    phases = [p for p in (classify_phase(data, m, bias) for m in candidates) if p is not None]
-    med = float(np.median(np.diff(t))) if data.n_imu > 1 else float("nan")
+    phases = consensus_phases([p for p in (classify_phase(data, m, bias) for m in candidates) if p is not None])
+    med = 1.0 / data.imu_rate if data.n_imu > 1 else float("nan")
     if not statics:
         warnings.append(f"{data.source}: no static interval found")
     seg = Segmentation(data, statics, motions, phases, g_noise, a_noise, bias, med, warnings)

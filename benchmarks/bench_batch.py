@@ -1,0 +1,56 @@
+"""Batch pipeline on the simulated paper session over 20 seeds: accuracy against truth and wall time.
+
+Prints per-seed figures and the worst case against the issue's bounds:
+gyro bias ≤ 1e-3 rad/s, gyro scale ≤ 0.1 %, each sensor's matrix ≤ 0.5 %, static accel norm within
+0.01 m/s² of g, calibrated mag norm std ≤ 0.3 %, 5-minute 100 Hz session in ≤ 5 s.
+
+    python benchmarks/bench_batch.py [--seeds 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from onlinecal.batch import run_batch
+from onlinecal.sim import simulate
+from onlinecal.sim.motion import G0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=20)
+    a = ap.parse_args()
+    rows = []
+    print(f"{'seed':>4} {'T [s]':>6} {'wall [s]':>8} {'gyro bias':>10} {'gyro scale %':>12} "
+          f"{'M_gyr %':>8} {'M_acc %':>8} {'M_mag %':>8} {'|f|-g':>8} {'mag std %':>9}")
+    for seed in range(a.seeds):
+        sim = simulate("paper", seed)
+        t0 = time.perf_counter()
+        res = run_batch([sim.data])
+        wall = time.perf_counter() - t0
+        c, t = res.calibration, sim.truth.calibration
+        d = sim.data
+        f = [np.linalg.norm(c.accel.apply(d.acc[s.i0:s.i1]).mean(0)) - G0 for s in res.segmentations[0].statics]
+        r = {
+            "T": d.duration, "wall": wall,
+            "gb": np.abs(c.gyro.bias - t.gyro.bias).max(),
+            "gs": 100 * np.abs(c.gyro.scale / t.gyro.scale - 1).max(),
+            "mg": 100 * c.gyro.matrix_rel_error(t.gyro), "ma": 100 * c.accel.matrix_rel_error(t.accel),
+            "mm": 100 * c.mag.matrix_rel_error(t.mag), "fn": np.abs(f).max(),
+            "ms": 100 * np.linalg.norm(c.mag.apply(d.mag), axis=1).std(),
+        }
+        rows.append(r)
+        print(f"{seed:>4} {r['T']:>6.0f} {r['wall']:>8.2f} {r['gb']:>10.2e} {r['gs']:>12.4f} {r['mg']:>8.4f} "
+              f"{r['ma']:>8.4f} {r['mm']:>8.4f} {r['fn']:>8.4f} {r['ms']:>9.3f}")
+    worst = {k: max(r[k] for r in rows) for k in rows[0]}
+    bounds = {"wall": 5.0, "gb": 1e-3, "gs": 0.1, "mg": 0.5, "ma": 0.5, "mm": 0.5, "fn": 0.01, "ms": 0.3}
+    print("\nworst over seeds (bound, ratio worst/bound):")
+    for k, b in bounds.items():
+        print(f"  {k:>4}: {worst[k]:.4g}  (≤ {b:g}, ratio {worst[k] / b:.3f}) {'OK' if worst[k] <= b else 'FAIL'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,68 @@
+"""Log readers and writers, chosen by file extension: ``.csv`` (flat schema), ``.tlog`` (MAVLink
+telemetry), ``.bin`` (ArduPilot DataFlash). Every reader streams :class:`ImuData` blocks and raises
+only :class:`LogError` for unusable input; the shared drop policy is in :mod:`onlinecal.io.validate`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from onlinecal.io.base import ImuData, LogError, LogReader
+from onlinecal.io.csv import CsvReader, write_csv
+from onlinecal.io.dataflash import DataflashReader, write_dataflash
+from onlinecal.io.tlog import TlogReader, write_tlog
+
+__all__ = [
+    "CsvReader", "DataflashReader", "ImuData", "LogError", "LogReader", "TlogReader", "open_log",
+    "read_log", "write_csv", "write_dataflash", "write_log", "write_tlog",
+]
+
+EXTENSIONS = (".csv", ".tlog", ".bin")
+
+
+def _ext(path: str | Path) -> str:
+    return Path(path).suffix.lower()
+
+
+def open_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
+             mag_scale: float | None = None) -> LogReader:
+    """A streaming reader for ``path`` chosen by its extension (.csv, .tlog, .bin).
+
+    The scales multiply the raw values in place of the format's default unit conversion (see
+    :mod:`onlinecal.io.tlog`, :mod:`onlinecal.io.dataflash`); for CSV, whose columns are already in
+    SI units, a given scale multiplies the column values. Raises LogError for an unknown extension, a
+    missing or empty file, or (CSV) an unusable header.
+    """
+    ext = _ext(path)
+    if ext == ".csv":
+        return CsvReader(path, acc_scale, gyro_scale, mag_scale)
+    if ext == ".tlog":
+        return TlogReader(path, acc_scale, gyro_scale, mag_scale)
+    if ext == ".bin":
+        return DataflashReader(path, acc_scale, gyro_scale, mag_scale)
+    raise LogError(str(path), f"unknown log format {ext or '(no extension)'!r}; expected one of "
+                   f"{', '.join(EXTENSIONS)}")
+
+
+def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
+             mag_scale: float | None = None, max_samples: int = 1 << 16) -> ImuData:
+    """The whole log as one ImuData (the concatenation of the reader's blocks), warnings included."""
+    reader = open_log(path, acc_scale, gyro_scale, mag_scale)
+    data = ImuData.concat(reader.blocks(max_samples), source=str(path))
+    data.warnings = list(reader.warnings)
+    return data
+
+
+def write_log(path: str | Path, data: ImuData) -> None:
+    """Write ``data`` in the format of the extension: .csv (exact), .tlog (RAW_IMU, int16 units:
+    1 mG, 1 mrad/s, 1 mgauss), .bin (DataFlash: float32 IMU, int16 mgauss MAG)."""
+    ext = _ext(path)
+    if ext == ".csv":
+        write_csv(path, data)
+    elif ext == ".tlog":
+        write_tlog(path, data)
+    elif ext == ".bin":
+        write_dataflash(path, data)
+    else:
+        raise ValueError(f"cannot write {ext or 'files without an extension'!r}; "
+                         f"use one of {', '.join(EXTENSIONS)}")

@@ -1,0 +1,250 @@
+"""ArduPilot DataFlash binary logs (``.bin``): read IMU and MAG in bounded blocks, and write minimal logs.
+
+Read through pymavlink's DFReader:
+
+* ``IMU`` — TimeUS µs, GyrX/Y/Z rad/s, AccX/Y/Z m/s², T °C; instance ``I`` == 0 only (logs from
+  before the ``I`` field name the second IMU ``IMU2``, which is not read).
+* ``MAG`` — TimeUS µs, MagX/Y/Z milligauss (× 1e-3 → gauss); instance 0 only.
+
+``acc_scale``/``gyro_scale``/``mag_scale`` replace the default multipliers (1, 1, 1e-3).
+
+Note that ArduPilot logs IMU and MAG values *after* its own calibration (accel offsets/scales, compass
+offsets and matrices): a calibration fitted on them is relative to the autopilot's.
+
+DFReader maps the file and indexes every message up front (a few bytes per message); the blocks this
+reader builds are bounded as for the other formats. pymavlink reports corrupt stretches by printing;
+that output is kept off the terminal and summed into a warning.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import re
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.validate import BlockAssembler, SampleFilter, check_file
+
+HEAD = b"\xa3\x95"
+FMT_ID = 0x80
+IMU_ID = 100  # ArduPilot assigns ids per build; DFReader only needs them to match the FMT records
+MAG_ID = 101
+# (name, format, columns) as ArduPilot 4.x logs them.
+FMT_FORMAT = ("FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
+IMU_FORMAT = ("IMU", "QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz")
+MAG_FORMAT = ("MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S")
+_NP = {"Q": "<u8", "B": "u1", "f": "<f4", "I": "<u4", "H": "<u2", "h": "<i2"}
+_SKIPPED = re.compile(r"Skipped (\d+) bad bytes")
+
+
+@contextlib.contextmanager
+def _captured_output(fd_level: bool = False) -> Iterator[io.StringIO]:
+    """Capture what pymavlink prints. ``fd_level`` also silences file descriptor 2, where the compiled
+    DataFlash indexer writes one line per bad byte; only used around the (non-yielding) constructor."""
+    buf = io.StringIO()
+    saved = None
+    if fd_level:
+        try:
+            sys.stderr.flush()
+            devnull = os.open(os.devnull, os.O_WRONLY)
+        except (OSError, ValueError):
+            devnull = None
+        if devnull is not None:
+            try:
+                saved = os.dup(2)
+                os.dup2(devnull, 2)
+            except OSError:  # no fd 2 to silence: nothing to restore either
+                if saved is not None:
+                    os.close(saved)
+                saved = None
+            finally:
+                os.close(devnull)
+    try:
+        with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+            yield buf
+    finally:
+        if saved is not None:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+class DataflashReader:
+    """Streaming reader of IMU instance 0 and MAG instance 0 of one DataFlash ``.bin`` log."""
+
+    def __init__(self, path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
+                 mag_scale: float | None = None) -> None:
+        self.path = str(path)
+        self.warnings: list[str] = []
+        self.scale = {
+            "acc": 1.0 if acc_scale is None else float(acc_scale),
+            "gyro": 1.0 if gyro_scale is None else float(gyro_scale),
+            "mag": 1e-3 if mag_scale is None else float(mag_scale),
+        }
+        check_file(self.path)
+
+    def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
+        """Yield ImuData blocks of at most ``max_samples`` IMU samples, in log order."""
+        from pymavlink import DFReader
+
+        filt = SampleFilter(self.path, unit="messages")
+        self.warnings = filt.warnings
+        asm = BlockAssembler(self.path, filt.warnings, max_samples)
+        skipped = 0
+        try:
+            with _captured_output(fd_level=True):
+                dfr = DFReader.DFReader_binary(self.path, zero_time_base=True)
+        except Exception as e:
+            raise LogError(self.path, f"not a readable DataFlash log: {type(e).__name__}: {e}") from None
+        batch = _Batch(self.path)
+        flush_every = max(1, min(max_samples, 1 << 14))
+        try:
+            done = False
+            while not done:
+                # Read a batch with pymavlink's prints captured, then hand it on outside the capture
+                # (never yield while stdout/stderr are redirected).
+                with _captured_output() as out:
+                    done = batch.read(dfr, flush_every)
+                skipped += sum(int(k) for k in _SKIPPED.findall(out.getvalue()))
+                self._flush(batch, filt, asm)
+                yield from asm.pop()
+        finally:
+            with contextlib.suppress(Exception):
+                dfr.data_map.close()
+                dfr.filehandle.close()
+        if batch.n_imu_msg == 0:
+            raise LogError(self.path, "no IMU messages in the log")
+        if batch.other:
+            filt.note(f"read IMU and MAG instance 0; ignored {', '.join(sorted(batch.other))}")
+        if skipped:
+            filt.note(f"skipped {skipped} corrupt bytes that pymavlink could not parse")
+        filt.finish()
+        yield from asm.pop(final=True)
+
+    def _flush(self, batch: _Batch, filt: SampleFilter, asm: BlockAssembler) -> None:
+        a = np.asarray(batch.imu, np.float64).reshape(-1, 8)
+        b = np.asarray(batch.mag, np.float64).reshape(-1, 4)
+        batch.imu, batch.mag = [], []
+        s = self.scale
+        asm.add(filt.imu(a[:, 0], a[:, 1:4] * s["gyro"], a[:, 4:7] * s["acc"], a[:, 7]),
+                filt.mag(b[:, 0], b[:, 1:4] * s["mag"]))
+
+
+class _Batch:
+    """Rows of IMU/MAG instance 0 read from a DFReader since the last flush, and running counts."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.imu: list[tuple] = []  # (t s, gyro xyz, acc xyz, T)
+        self.mag: list[tuple] = []  # (t s, mag xyz in file units)
+        self.other: set[str] = set()  # instances seen and not read
+        self.n_msg = 0
+        self.n_imu_msg = 0
+
+    def read(self, dfr: Any, limit: int) -> bool:
+        """Read until ``limit`` rows are held; True when the log has ended."""
+        while len(self.imu) + len(self.mag) < limit:
+            where = f"byte {getattr(dfr, 'offset', '?')}, message {self.n_msg + 1}"
+            try:
+                m = dfr.recv_match(type=["IMU", "MAG"])
+            except Exception as e:
+                raise LogError(self.path, f"pymavlink failed: {type(e).__name__}: {e}", where) from None
+            if m is None:
+                return True
+            self.n_msg += 1
+            try:
+                typ = m.get_type()
+                inst = int(getattr(m, "I", 0))
+                t = _time_s(m)
+                if typ == "IMU":
+                    self.n_imu_msg += 1
+                    if inst == 0:
+                        temp = float(getattr(m, "T", float("nan")))
+                        self.imu.append((t, m.GyrX, m.GyrY, m.GyrZ, m.AccX, m.AccY, m.AccZ, temp))
+                    else:
+                        self.other.add(f"IMU instance {inst}")
+                elif inst == 0:
+                    self.mag.append((t, m.MagX, m.MagY, m.MagZ))
+                else:
+                    self.other.add(f"MAG instance {inst}")
+            except (AttributeError, TypeError, ValueError) as e:
+                where = f"byte {getattr(dfr, 'offset', '?')}, message {self.n_msg}"  # the message's end
+                raise LogError(self.path, f"{m.get_type()} message without a usable field ({e})",
+                               where) from None
+        return False
+
+
+def _time_s(m: Any) -> float:
+    t = getattr(m, "TimeUS", None)
+    if t is not None:
+        return float(t) * 1e-6
+    return float(m.TimeMS) * 1e-3  # logs before TimeUS (ArduPilot < 3.3)
+
+
+def _record_dtype(fmt: str, columns: str) -> np.dtype:
+    names = columns.split(",")
+    fields = [("h1", "u1"), ("h2", "u1"), ("id", "u1")]
+    fields += [(n, _NP[c]) for n, c in zip(names, fmt, strict=True)]
+    return np.dtype(fields)  # packed: numpy adds no padding unless align=True
+
+
+def _fmt_record(msg_id: int, name: str, fmt: str, columns: str) -> bytes:
+    length = _record_dtype(fmt, columns).itemsize if name != "FMT" else 89
+    rec = np.zeros(1, np.dtype([("h", "u1", 3), ("Type", "u1"), ("Length", "u1"), ("Name", "S4"),
+                                ("Format", "S16"), ("Columns", "S64")]))
+    rec["h"] = [HEAD[0], HEAD[1], FMT_ID]
+    rec["Type"], rec["Length"] = msg_id, length
+    rec["Name"], rec["Format"], rec["Columns"] = name.encode(), fmt.encode(), columns.encode()
+    return rec.tobytes()
+
+
+def write_dataflash(path: str | Path, data: ImuData) -> None:
+    """Write ``data`` as a minimal ArduPilot DataFlash log: FMT records for FMT, IMU and MAG, then IMU
+    (instance 0; gyro rad/s, acc m/s², T °C as float32) and MAG (instance 0; int16 milligauss, rounded
+    and clipped) records merged in time order. TimeUS = round(t µs); times must be ≥ 0."""
+    for t in (data.t_imu, data.t_mag):
+        if t.size and (not np.all(np.isfinite(t)) or t.min() < 0):
+            raise ValueError("write_dataflash needs finite, non-negative times")
+    di = _record_dtype(IMU_FORMAT[1], IMU_FORMAT[2])
+    dm = _record_dtype(MAG_FORMAT[1], MAG_FORMAT[2])
+    imu = np.zeros(data.n_imu, di)
+    imu["h1"], imu["h2"], imu["id"] = HEAD[0], HEAD[1], IMU_ID
+    imu["TimeUS"] = np.rint(data.t_imu * 1e6).astype(np.uint64)
+    for k, c in enumerate("XYZ"):
+        imu[f"Gyr{c}"] = data.gyro[:, k]
+        imu[f"Acc{c}"] = data.acc[:, k]
+    imu["T"] = data.temp
+    imu["GH"] = imu["AH"] = 1
+    rate = data.imu_rate
+    imu["GHz"] = imu["AHz"] = int(np.clip(round(rate), 0, 65535)) if np.isfinite(rate) else 0
+    mag = np.zeros(data.n_mag, dm)
+    mag["h1"], mag["h2"], mag["id"] = HEAD[0], HEAD[1], MAG_ID
+    mag["TimeUS"] = np.rint(data.t_mag * 1e6).astype(np.uint64)
+    mq = np.clip(np.rint(data.mag * 1e3), -32768, 32767).astype(np.int16) if data.n_mag else None
+    for k, c in enumerate("XYZ"):
+        if mq is not None:
+            mag[f"Mag{c}"] = mq[:, k]
+    mag["Health"] = 1
+    # Merge by time (IMU first on ties): scatter both record arrays into one byte buffer.
+    t = np.concatenate([imu["TimeUS"], mag["TimeUS"]])
+    order = np.argsort(t, kind="stable")
+    size = np.where(order < data.n_imu, di.itemsize, dm.itemsize)
+    start = np.concatenate([[0], np.cumsum(size)[:-1]]).astype(np.int64)
+    pos = np.empty_like(start)
+    pos[order] = start
+    body = np.zeros(int(size.sum()), np.uint8)
+    for recs, p in ((imu, pos[: data.n_imu]), (mag, pos[data.n_imu:])):
+        if recs.size:
+            raw = recs.view(np.uint8).reshape(recs.size, recs.dtype.itemsize)
+            body[p[:, None] + np.arange(recs.dtype.itemsize)] = raw
+    with open(path, "wb") as f:
+        f.write(_fmt_record(FMT_ID, *FMT_FORMAT))
+        f.write(_fmt_record(IMU_ID, *IMU_FORMAT))
+        f.write(_fmt_record(MAG_ID, *MAG_FORMAT))
+        f.write(body.tobytes())

@@ -1,0 +1,507 @@
+"""A live MAVLink link (serial, UDP, TCP) as a stream of ImuData blocks: the input of ``onlinecal run``.
+
+:class:`LiveSource` opens any pymavlink connection string, asks the vehicle for RAW_IMU at ``rate_hz``
+(COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL, once a vehicle HEARTBEAT names its system and component) and
+turns the RAW_IMU messages of one source (system, component, IMU id 0) into blocks in time order.
+
+Units, as in ``onlinecal.io.tlog`` (ArduPilot's RAW_IMU): ``time_usec`` µs → t s (vehicle boot time),
+acc milli-g → m/s², gyro mrad/s → rad/s, mag mgauss → gauss, temperature c°C → °C (0 = "not provided"
+→ NaN). ``acc_scale``/``gyro_scale``/``mag_scale`` replace the multiplier (SI unit per count).
+Magnetometer: RAW_IMU repeats the latest compass reading at the IMU rate (sample-and-hold), so a mag
+sample is emitted, at that message's time, only when the triple changes; all-zero triples mean "no
+compass (yet)" and are not samples.
+
+What the link does to packets and what is done about it:
+
+* reordering: a buffer of ``reorder_window`` packets, sorted by ``time_usec``, puts late packets back
+  in place (counted in ``stats['reordered']``); a packet older than the last emitted sample is dropped
+  (``dropped_late``);
+* duplicates (same ``time_usec``) are dropped (``duplicates``); loss is just a gap in time;
+* silence for ``reconnect_s`` (or a socket error, or TCP EOF): the connection is closed and opened
+  again, and the rate request is sent again (``reconnects``);
+* a vehicle clock that restarts (reboot: ``time_usec`` back near 0 for many packets in a row) is
+  joined on: later times are shifted to continue after the last emitted sample, with a warning.
+
+The IMU samples then go through the shared input policy (``onlinecal.io.validate.SampleFilter``:
+all-zero or non-finite readings dropped, with warnings), as for a log file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import heapq
+import os
+import re
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.sender import ACC_UNIT, GYRO_UNIT, MAG_UNIT, MAV_CMD_SET_MESSAGE_INTERVAL, mavutil_v2
+from onlinecal.io.validate import SampleFilter
+
+RAW_IMU_ID = 27
+_GCS_COMPONENT = 190  # MAV_COMP_ID_MISSIONPLANNER: what a ground station calls itself
+_SCHEMES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcpin:", "tcp:", "uds:", "unix:", "mcast:",
+            "ws:", "wss:", "wsserver:")
+_LOG_SUFFIXES = (".tlog", ".bin", ".log", ".csv", ".px4log", ".mavlink", ".raw")
+_REQUEST_TRIES = 3  # SET_MESSAGE_INTERVAL attempts per connection, one second apart
+_RESET_BEHIND_S = 1.0  # a packet this far behind the last emitted one may be a restarted vehicle clock
+_RECV_BATCH = 1000  # messages handled before the block/stop checks run again
+
+
+class _LinkLost(Exception):
+    """The transport reported the peer gone (TCP EOF or reset)."""
+
+
+class _Link:
+    """Per-connection state: reset by every (re)connect."""
+
+    def __init__(self, conn: Any, now: float) -> None:
+        self.conn = conn
+        self.opened = now
+        self.last_msg = now  # wall time of the last message of any kind
+        self.got_any = False
+        self.vehicle: tuple[int, int] | None = None  # (system, component) of the vehicle HEARTBEAT
+        self.next_hb = now  # our GCS heartbeat
+        self.requests = 0
+        self.next_request = now
+        self.acked = False
+
+
+def _reason(e: BaseException) -> str:
+    if isinstance(e, ModuleNotFoundError):
+        return f"{e.name} is not installed (serial links need pyserial)"
+    if isinstance(e, OSError) and e.strerror:
+        return e.strerror
+    return str(e) or type(e).__name__
+
+
+class LiveSource:
+    """RAW_IMU from a live MAVLink link, as ImuData blocks of about ``block_s`` s of samples.
+
+    ``url``: pymavlink connection string — ``udpin:HOST:PORT`` (listen; replies go to whoever sent
+    last), ``udpout:HOST:PORT`` (send to; the vehicle learns our address from our heartbeats),
+    ``tcp:HOST:PORT`` (connect), ``tcpin:HOST:PORT`` (accept), or a serial device ``/dev/ttyACM0`` with
+    an optional ``,BAUD`` (needs pyserial). The link is opened by the constructor (LogError if it
+    cannot be: ``url: cannot open connection: ...``).
+
+    ``rate_hz``: RAW_IMU rate asked for (0: ask for nothing). ``block_s``: s of data per block.
+    ``reorder_window``: packets held back to repair reordering (adds that many samples of latency).
+    ``reconnect_s``: s of silence before the connection is re-opened. ``timeout_s``: s without RAW_IMU
+    after which the stream ends (None: never); LogError if no sample arrived at all. ``duration_s``:
+    s of data after which the stream ends (None: never). ``acc_scale``/``gyro_scale``/``mag_scale``:
+    m/s², rad/s, gauss per RAW_IMU count (defaults milli-g, mrad/s, mgauss).
+
+    ``stats`` (live dict): received (RAW_IMU packets of the source), emitted, mag (samples emitted),
+    duplicates, reordered, dropped_late, reconnects, ack (COMMAND_ACKs for the rate request),
+    ack_result (last MAV_RESULT or None), interval_requests, heartbeats (vehicle HEARTBEATs),
+    ignored (RAW_IMU of other sources), bad_data, clock_resets, stop_reason
+    ('duration' | 'timeout' | 'closed' | None). ``warnings``: one sentence per problem, shared with
+    every block.
+    """
+
+    def __init__(self, url: str, rate_hz: float = 200.0, block_s: float = 0.25, reorder_window: int = 32,
+                 reconnect_s: float = 2.0, timeout_s: float | None = None, duration_s: float | None = None,
+                 acc_scale: float | None = None, gyro_scale: float | None = None,
+                 mag_scale: float | None = None) -> None:
+        if not rate_hz >= 0 or not block_s > 0 or not reconnect_s > 0 or reorder_window < 0:
+            raise ValueError("need rate_hz >= 0, block_s > 0, reconnect_s > 0, reorder_window >= 0")
+        self.url = self.path = str(url)
+        self.rate_hz = float(rate_hz)
+        self.block_s = float(block_s)
+        self.reorder_window = int(reorder_window)
+        self.reconnect_s = float(reconnect_s)
+        self.timeout_s = timeout_s
+        self.duration_s = duration_s
+        self.units = {"acc": ACC_UNIT if acc_scale is None else float(acc_scale),
+                      "gyro": GYRO_UNIT if gyro_scale is None else float(gyro_scale),
+                      "mag": MAG_UNIT if mag_scale is None else float(mag_scale)}
+        self.warnings: list[str] = []
+        self.stats: dict[str, Any] = dict(
+            received=0, emitted=0, mag=0, duplicates=0, reordered=0, dropped_late=0, reconnects=0, ack=0,
+            ack_result=None, interval_requests=0, heartbeats=0, ignored=0, bad_data=0, clock_resets=0,
+            stop_reason=None)
+        self._mavutil = mavutil_v2()
+        self._mavlink = self._mavutil.mavlink
+        self._lock = threading.Lock()  # the connection is used by blocks() and closed by close()
+        self._closing = threading.Event()
+        self._started = False
+        self._notes: list[str] = []
+        self._filter = SampleFilter(self.url, unit="messages")
+        now = time.monotonic()
+        self._link: _Link | None = _Link(self._open(), now)
+        self._next_open = now
+        self._retry_s = max(0.05, min(self.reconnect_s / 2, 1.0))
+        self._last_error = ""
+        # Sample state (times as integer µs on the emitted, possibly shifted, clock).
+        self._source: tuple[int, int] | None = None
+        self._offset_us = 0  # added to time_usec; changes only when the vehicle clock restarts
+        self._heap: list[tuple[int, tuple]] = []
+        self._in_heap: set[int] = set()
+        self._max_us = -1  # latest time received (for counting reordered packets)
+        self._last_us = -1  # last emitted
+        self._last_dt_us = 0
+        self._first_us: int | None = None
+        self._recent: deque[int] = deque()
+        self._recent_set: set[int] = set()
+        self._recent_max = 4 * self.reorder_window + 16
+        self._behind: list[tuple[int, tuple]] = []  # consecutive far-late packets: clock restart?
+        self._prev_mag: tuple | None = None
+        self._zero_mag = 0
+        self._imu_rows: list[tuple] = []
+        self._mag_rows: list[tuple] = []
+        self._block_wall: float | None = None  # wall time the pending block got its first sample
+        self._last_data = now  # wall time of the last RAW_IMU of the source
+        self._done: str | None = None
+
+    # -- opening and closing ----------------------------------------------------------------------
+    def _open(self) -> Any:
+        url = self.url
+        device, baud = url, 115200
+        if not url.startswith(_SCHEMES):
+            m = re.fullmatch(r"(.+),(\d+)", url)
+            if m:  # MAVProxy's "DEVICE,BAUD"; pymavlink itself takes the baud rate separately
+                device, baud = m.group(1), int(m.group(2))
+            if os.path.isfile(device) or device.lower().endswith(_LOG_SUFFIXES):
+                raise LogError(url, "cannot open connection: a log file, not a live link (use replay)")
+            if device.startswith("/") and not os.path.exists(device):
+                raise LogError(url, "cannot open connection: no such device")
+        try:
+            # retries=0: one attempt, no "sleeping" prints; re-opening is done here, on our schedule.
+            conn = self._mavutil.mavlink_connection(device, baud=baud, source_system=255,
+                                                    source_component=_GCS_COMPONENT, retries=0)
+        except Exception as e:  # OSError, ValueError, OverflowError, ImportError: all "cannot open"
+            raise LogError(url, f"cannot open connection: {_reason(e)}") from None
+        port = getattr(conn, "port", None)
+        if isinstance(port, socket.socket) and port.type == socket.SOCK_DGRAM:
+            # Bursts (Wi-Fi telemetry, a fast replay) overflow the default UDP buffer; best effort.
+            with contextlib.suppress(OSError):
+                port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+        if hasattr(conn, "handle_eof"):
+            # pymavlink's TCP client prints and carries on reading an EOF socket (busy loop); make the
+            # loss visible so the link is re-opened at once.
+            def lost() -> None:
+                raise _LinkLost()
+
+            conn.handle_eof = lost
+            conn.handle_disconnect = lost
+        return conn
+
+    def _drop_link(self) -> None:
+        if self._link is not None:
+            with contextlib.suppress(Exception):
+                self._link.conn.close()
+            self._link = None
+
+    def close(self) -> None:
+        """End the stream (from any thread): blocks() yields what it holds and returns."""
+        self._closing.set()
+        with self._lock:
+            self._drop_link()
+
+    def __enter__(self) -> LiveSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- the stream -------------------------------------------------------------------------------
+    def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
+        """Yield ImuData blocks in time order, each about ``block_s`` s (at most ``max_samples`` IMU
+        samples), until ``duration_s`` of data, ``timeout_s`` without data, or :meth:`close`.
+
+        Raises LogError when ``timeout_s`` passes and no sample arrived at all. Iterate once.
+        """
+        if self._started:
+            raise RuntimeError("LiveSource.blocks() can be iterated only once")
+        self._started = True
+        try:
+            while True:
+                with self._lock:
+                    if self._closing.is_set():
+                        self._done = "closed"
+                    else:
+                        self._step()
+                if self._done:
+                    break
+                block = self._ready_block(max_samples)
+                if block is not None:
+                    yield block
+            self.stats["stop_reason"] = self._done
+            self._flush_heap()
+            while self._imu_rows or self._mag_rows:
+                block = self._take_block(max_samples)
+                if block is not None:
+                    yield block
+            if self._done == "timeout" and self.stats["emitted"] == 0:
+                raise LogError(self.url, self._nothing_received())
+        finally:
+            with self._lock:
+                self._drop_link()
+
+    def _step(self) -> None:
+        """One round of I/O: (re)open if needed, send what is due, read what is there (or wait ≤ 50 ms)."""
+        now = time.monotonic()
+        if self.timeout_s is not None and now - self._last_data >= self.timeout_s:
+            self._done = "timeout"
+            return
+        link = self._link
+        if link is None:
+            if now < self._next_open:
+                self._closing.wait(min(0.05, self._next_open - now))
+                return
+            try:
+                link = self._link = _Link(self._open(), now)
+            except LogError as e:
+                self._last_error = e.message
+                self._next_open = now + self._retry_s
+                return
+            self.stats["reconnects"] += 1
+        try:
+            self._send_due(link, now)
+            n = 0
+            while n < _RECV_BATCH and not self._done:
+                n += 1
+                try:
+                    msg = link.conn.recv_msg()
+                except self._mavlink.MAVError:
+                    self.stats["bad_data"] += 1
+                    continue
+                if msg is None:
+                    n -= 1
+                    break
+                self._handle(link, msg)
+            if n == 0:
+                link.conn.select(0.05)
+        except (OSError, _LinkLost):
+            self._reopen(link)
+            return
+        if time.monotonic() - link.last_msg >= self.reconnect_s:
+            self._reopen(link)
+
+    def _reopen(self, link: _Link) -> None:
+        self._drop_link()
+        # At once, but not more often than every _retry_s when the peer keeps closing on us.
+        self._next_open = link.opened + self._retry_s
+
+    def _send_due(self, link: _Link, now: float) -> None:
+        mav, ml = link.conn.mav, self._mavlink
+        if now >= link.next_hb:
+            # A ground-station heartbeat: over udpout it is how the vehicle learns where to send; sent
+            # faster until the vehicle answers, so the stream starts soon after the link opens.
+            mav.heartbeat_send(ml.MAV_TYPE_GCS, ml.MAV_AUTOPILOT_INVALID, 0, 0, ml.MAV_STATE_ACTIVE)
+            link.next_hb = now + (1.0 if link.got_any else 0.25)
+        if (self.rate_hz > 0 and link.vehicle is not None and not link.acked and now >= link.next_request
+                and link.requests < _REQUEST_TRIES):
+            sysid, compid = link.vehicle
+            mav.command_long_send(sysid, compid, MAV_CMD_SET_MESSAGE_INTERVAL, link.requests,
+                                  float(RAW_IMU_ID), round(1e6 / self.rate_hz), 0, 0, 0, 0, 0)
+            link.requests += 1
+            link.next_request = now + 1.0
+            self.stats["interval_requests"] += 1
+        elif link.requests >= _REQUEST_TRIES and not link.acked and now >= link.next_request:
+            self._note("no COMMAND_ACK for SET_MESSAGE_INTERVAL: the RAW_IMU rate is the vehicle's own")
+
+    def _handle(self, link: _Link, msg: Any) -> None:
+        link.last_msg = time.monotonic()
+        link.got_any = True
+        typ = msg.get_type()
+        if typ == "RAW_IMU":
+            key = (msg.get_srcSystem(), msg.get_srcComponent())
+            if int(getattr(msg, "id", 0) or 0) != 0:
+                self.stats["ignored"] += 1
+                self._note("RAW_IMU of other IMU ids ignored (id 0 is used)")
+                return
+            if self._source is None and (link.vehicle is None or link.vehicle[0] == key[0]):
+                self._source = key
+            if key != self._source:
+                self.stats["ignored"] += 1
+                self._note("RAW_IMU of other systems or components ignored (the first one seen is used)")
+                return
+            self._last_data = link.last_msg
+            self._accept(msg)
+        elif typ == "HEARTBEAT":
+            if link.vehicle is None and link.conn.probably_vehicle_heartbeat(msg) and (
+                    self._source is None or self._source[0] == msg.get_srcSystem()):
+                link.vehicle = (msg.get_srcSystem(), msg.get_srcComponent())
+            if link.vehicle == (msg.get_srcSystem(), msg.get_srcComponent()):
+                self.stats["heartbeats"] += 1
+        elif typ == "COMMAND_ACK":
+            if msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and getattr(msg, "target_system", 0) in (0, 255):
+                link.acked = True
+                self.stats["ack"] += 1
+                self.stats["ack_result"] = int(msg.result)
+                if msg.result != self._mavlink.MAV_RESULT_ACCEPTED:
+                    self._note(f"the vehicle refused the RAW_IMU rate request (MAV_RESULT {msg.result})")
+        elif typ == "BAD_DATA":
+            self.stats["bad_data"] += 1
+
+    # -- ordering ---------------------------------------------------------------------------------
+    def _accept(self, msg: Any) -> None:
+        st = self.stats
+        st["received"] += 1
+        if self._done:
+            return
+        raw = int(msg.time_usec)
+        fields = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro, msg.xmag, msg.ymag,
+                  msg.zmag, getattr(msg, "temperature", 0))
+        us = raw + self._offset_us
+        if us <= self._last_us:
+            if us in self._recent_set:
+                st["duplicates"] += 1
+            elif us < self._last_us - _RESET_BEHIND_S * 1e6:
+                self._behind.append((raw, fields))
+                if len(self._behind) >= max(2 * self.reorder_window, 16):
+                    self._clock_restart()
+            else:
+                st["dropped_late"] += 1
+            return
+        if self._behind:  # a stray far-late burst, not a restart: those packets are just late
+            st["dropped_late"] += len(self._behind)
+            self._behind.clear()
+        if us in self._in_heap:
+            st["duplicates"] += 1
+            return
+        if us < self._max_us:
+            st["reordered"] += 1
+        self._max_us = max(self._max_us, us)
+        heapq.heappush(self._heap, (us, fields))
+        self._in_heap.add(us)
+        while len(self._heap) > self.reorder_window and not self._done:
+            self._emit(*self._pop())
+
+    def _pop(self) -> tuple[int, tuple]:
+        us, fields = heapq.heappop(self._heap)
+        self._in_heap.discard(us)
+        return us, fields
+
+    def _flush_heap(self) -> None:
+        while self._heap and not self._done:
+            self._emit(*self._pop())
+        if self._done:
+            self._heap.clear()
+            self._in_heap.clear()
+
+    def _clock_restart(self) -> None:
+        """Many packets in a row far behind the last emitted one: the vehicle clock restarted (reboot).
+        Continue the time line one sample period after the last emitted sample."""
+        self._flush_heap()
+        behind, self._behind = sorted(self._behind), []
+        step = self._last_dt_us or (round(1e6 / self.rate_hz) if self.rate_hz else 1000)
+        shift = self._last_us + step - (behind[0][0] + self._offset_us)
+        self._offset_us += shift
+        self._max_us = self._last_us
+        self.stats["clock_resets"] += 1
+        self._note(f"the vehicle clock went back {shift * 1e-6:.3f} s (reboot?) {self.stats['clock_resets']} "
+                   "time(s): later samples are shifted to continue the time line")
+        for raw, fields in behind:
+            us = raw + self._offset_us
+            if us > self._last_us and us not in self._in_heap:
+                heapq.heappush(self._heap, (us, fields))
+                self._in_heap.add(us)
+            else:
+                self.stats["duplicates"] += 1
+        while len(self._heap) > self.reorder_window and not self._done:
+            self._emit(*self._pop())
+
+    def _emit(self, us: int, fields: tuple) -> None:
+        if self._done:
+            return
+        if self._first_us is None:
+            self._first_us = us
+        ax, ay, az, gx, gy, gz, mx, my, mz, temp_c = fields
+        t = us * 1e-6
+        g, a, m = self.units["gyro"], self.units["acc"], self.units["mag"]
+        self._imu_rows.append((t, gx * g, gy * g, gz * g, ax * a, ay * a, az * a,
+                               temp_c * 0.01 if temp_c else np.nan))
+        mag = (mx, my, mz)
+        if mag != self._prev_mag:
+            if mag == (0, 0, 0):
+                self._zero_mag += 1
+            else:
+                self._mag_rows.append((t, mx * m, my * m, mz * m))
+        self._prev_mag = mag
+        if self._block_wall is None:
+            self._block_wall = time.monotonic()
+        if self._last_us >= 0:
+            self._last_dt_us = us - self._last_us
+        self._last_us = us
+        self._recent.append(us)
+        self._recent_set.add(us)
+        if len(self._recent) > self._recent_max:
+            self._recent_set.discard(self._recent.popleft())
+        self.stats["emitted"] += 1
+        if self.duration_s is not None and (us - self._first_us) * 1e-6 >= self.duration_s:
+            self._done = "duration"
+
+    # -- blocks -----------------------------------------------------------------------------------
+    def _ready_block(self, max_samples: int) -> ImuData | None:
+        now = time.monotonic()
+        if self._heap and now - self._last_data >= self.block_s:
+            # The stream paused: what waits for reordering will not be overtaken any more, hand it on.
+            self._flush_heap()
+        if not self._imu_rows:
+            return None
+        span = self._imu_rows[-1][0] - self._imu_rows[0][0] + self._last_dt_us * 1e-6
+        assert self._block_wall is not None
+        if (span >= self.block_s or len(self._imu_rows) >= max_samples
+                or now - self._block_wall >= 2 * self.block_s):
+            return self._take_block(max_samples)
+        return None
+
+    def _take_block(self, max_samples: int) -> ImuData | None:
+        rows, self._imu_rows = self._imu_rows[:max_samples], self._imu_rows[max_samples:]
+        if self._imu_rows:
+            t_end = rows[-1][0]
+            k = next((i for i, r in enumerate(self._mag_rows) if r[0] > t_end), len(self._mag_rows))
+            mrows, self._mag_rows = self._mag_rows[:k], self._mag_rows[k:]
+        else:
+            mrows, self._mag_rows = self._mag_rows, []
+        self._block_wall = time.monotonic() if self._imu_rows else None
+        a = np.asarray(rows, np.float64).reshape(-1, 8)
+        b = np.asarray(mrows, np.float64).reshape(-1, 4)
+        t, gyro, acc, temp = self._filter.imu(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7])
+        tm, mag = self._filter.mag(b[:, 0], b[:, 1:4])
+        self.stats["mag"] += int(tm.size)
+        self._update_warnings()
+        if not t.size and not tm.size:
+            return None
+        return ImuData(t, gyro, acc, temp, tm, mag, self.url, self.warnings)
+
+    # -- words ------------------------------------------------------------------------------------
+    def _note(self, sentence: str) -> None:
+        if sentence not in self._notes:
+            self._notes.append(sentence)
+            self._update_warnings()
+
+    def _update_warnings(self) -> None:
+        st = self.stats
+        link = []
+        if st["duplicates"]:
+            link.append(f"dropped {st['duplicates']} duplicate RAW_IMU messages")
+        if st["dropped_late"]:
+            link.append(f"dropped {st['dropped_late']} RAW_IMU messages that arrived too late to reorder")
+        if st["reconnects"]:
+            link.append(f"the link was silent or lost and re-opened {st['reconnects']} time(s)")
+        if self._zero_mag:
+            link.append(f"{self._zero_mag} all-zero mag readings (no compass yet) are not samples")
+        # In place: every block shares this list and so ends up with the final sentences.
+        self.warnings[:] = list(self._filter.warnings) + link + self._notes
+
+    def _nothing_received(self) -> str:
+        st, w = self.stats, f"{self.timeout_s:g} s"
+        if st["received"]:
+            return f"no usable RAW_IMU in {w}"
+        if st["heartbeats"]:
+            acked = "acknowledged" if st["ack"] else "not acknowledged"
+            return (f"vehicle HEARTBEAT but no RAW_IMU in {w} (rate request {acked}; is RAW_IMU "
+                    "streamed on this link?)")
+        if self._last_error:
+            return f"nothing received in {w} (last re-open failed: {self._last_error})"
+        return f"nothing received in {w}"

@@ -1,0 +1,271 @@
+"""MAVLink telemetry logs (``.tlog``): read IMU messages in bounded blocks, and write RAW_IMU logs.
+
+A tlog is a sequence of ``[8-byte big-endian µs wall-clock timestamp][MAVLink packet]``. The reader
+takes ONE IMU source: RAW_IMU with id 0 if the log has it, else the first IMU source seen (message
+type, id, system, component). The choice is made from the first ``_DECIDE_AFTER`` IMU messages (kept
+in memory until then) so the log is read once; other sources are named in a warning.
+
+Units (defaults; ``acc_scale``/``gyro_scale``/``mag_scale`` replace the multiplier):
+
+* RAW_IMU, SCALED_IMU, SCALED_IMU2/3 — acc mG (× 9.80665e-3 → m/s²), gyro mrad/s (× 1e-3 → rad/s),
+  mag mgauss (× 1e-3 → gauss), temperature c°C (× 0.01; 0 means "not provided" → NaN).
+  Time: RAW_IMU ``time_usec`` µs, SCALED_IMU* ``time_boot_ms`` ms.
+* HIGHRES_IMU — SI already (m/s², rad/s, gauss, °C), time ``time_usec``; ``fields_updated`` bits 0-2
+  acc, 3-5 gyro, 6-8 mag, 12 temperature say which fields are new (0 = all). The temperature is
+  held from its last update.
+
+Magnetometer in RAW_IMU/SCALED_IMU*: the autopilot sends the latest compass reading at the IMU rate
+(sample-and-hold), so a mag sample is emitted only when the mag triple differs from the previous
+message's; its time is that message's time (up to one IMU period after the compass sampled it). An
+identical consecutive reading is merged with the one before. A triple of exact zeros means "no compass
+(yet)" in ArduPilot: it is not a sample (counted in a warning), so a vehicle without a compass gives a
+log with no mag rather than an error.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.validate import BlockAssembler, SampleFilter, check_file
+
+G0 = 9.80665
+IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "HIGHRES_IMU")
+_INT_UNITS = {"acc": G0 * 1e-3, "gyro": 1e-3, "mag": 1e-3}  # RAW_IMU / SCALED_IMU*
+_SI_UNITS = {"acc": 1.0, "gyro": 1.0, "mag": 1.0}  # HIGHRES_IMU
+_DECIDE_AFTER = 1000  # IMU messages looked at before settling for a source other than RAW_IMU id 0
+_TLOG_EPOCH_US = 1_700_000_000_000_000  # wall-clock base of written tlog timestamps (2023-11-14)
+_INT16 = (-32768, 32767)
+
+
+def _mavutil() -> Any:
+    """pymavlink's mavutil with the MAVLink 2 parser (which also reads MAVLink 1 packets).
+
+    pymavlink switches to MAVLink 2 itself only when the very first packet of a file is MAVLink 2
+    (and then sets MAVLINK20 for the whole process); a tlog starting with a v1 packet would lose its
+    later v2 packets. Selecting v2 up front is the same global switch, made deterministic.
+    """
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+
+    if getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "1.0") != "2.0":
+        mavutil.set_dialect(mavutil.current_dialect or "ardupilotmega")
+    return mavutil
+
+
+class TlogReader:
+    """Streaming reader of the IMU (and the magnetometer it carries) in one MAVLink ``.tlog``."""
+
+    def __init__(self, path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
+                 mag_scale: float | None = None) -> None:
+        self.path = str(path)
+        self.warnings: list[str] = []
+        self.scale_override = {"acc": acc_scale, "gyro": gyro_scale, "mag": mag_scale}
+        self.source: str | None = None  # the IMU source read, e.g. "RAW_IMU id 0 (system 1)"
+        check_file(self.path)
+
+    def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
+        """Yield ImuData blocks of at most ``max_samples`` IMU samples, in log order."""
+        filt = SampleFilter(self.path, unit="messages")
+        self.warnings = filt.warnings
+        asm = BlockAssembler(self.path, filt.warnings, max_samples)
+        mavutil = _mavutil()
+        try:
+            conn = mavutil.mavlogfile(self.path, robust_parsing=True)
+        except Exception as e:  # pymavlink's own failures on odd files: report, never a traceback
+            raise LogError(self.path, f"pymavlink cannot open it: {type(e).__name__}: {e}") from None
+        st = _State(self.scale_override)
+        seen: dict[tuple, str] = {}  # source key → description, in order of first appearance
+        pending: list[tuple[tuple, Any]] = []  # IMU messages before the source is chosen
+        chosen: tuple | None = None
+        n_msg = n_bad = 0
+        flush_every = max(1, min(max_samples, 1 << 14))
+        try:
+            while True:
+                try:
+                    msg = conn.recv_match(type=[*IMU_MESSAGES, "BAD_DATA"], blocking=False)
+                except Exception as e:
+                    raise LogError(self.path, f"pymavlink failed: {type(e).__name__}: {e}",
+                                   f"byte {_tell(conn)}, message {n_msg + 1}") from None
+                if msg is None:
+                    break
+                n_msg += 1
+                typ = msg.get_type()
+                if typ == "BAD_DATA":
+                    n_bad += 1
+                    continue
+                key = _source_key(msg, typ)
+                if key not in seen:
+                    seen[key] = _describe(key)
+                if chosen is None:
+                    pending.append((key, msg))
+                    if (typ == "RAW_IMU" and key[3] == 0) or len(pending) >= _DECIDE_AFTER:
+                        chosen = key if typ == "RAW_IMU" and key[3] == 0 else next(iter(seen))
+                        for k, m in pending:
+                            if k == chosen:
+                                st.add(m, k[2])
+                        pending = []
+                elif key == chosen:
+                    st.add(msg, typ)
+                if st.n >= flush_every:
+                    self._flush(st, filt, asm)
+                    yield from asm.pop()
+            if chosen is None and seen:
+                chosen = next(iter(seen))
+                for k, m in pending:
+                    if k == chosen:
+                        st.add(m, k[2])
+                pending = []
+        finally:
+            conn.close()
+        if not seen:
+            raise LogError(self.path, f"no IMU messages ({', '.join(IMU_MESSAGES)}) in the log")
+        self._flush(st, filt, asm)
+        self.source = seen[chosen]
+        others = [d for k, d in seen.items() if k != chosen]
+        if others:
+            filt.note(f"read {seen[chosen]}; ignored the other IMU source(s) {', '.join(others)}")
+        if st.zero_mag:
+            filt.note(f"{st.zero_mag} of {st.n_msgs} {chosen[2]} messages carried a mag of exact zeros "
+                      f"(no compass reading); not used as mag samples")
+        if n_bad:
+            filt.note(f"skipped {n_bad} stretches of bytes pymavlink could not decode (bad CRC or garbage)")
+        filt.finish()
+        yield from asm.pop(final=True)
+
+    @staticmethod
+    def _flush(st: _State, filt: SampleFilter, asm: BlockAssembler) -> None:
+        imu, mag = st.take()
+        asm.add(filt.imu(*imu), filt.mag(*mag))
+
+
+class _State:
+    """Per-message conversion of the chosen source into row lists, turned into arrays per flush."""
+
+    def __init__(self, override: dict[str, float | None]) -> None:
+        self.override = override
+        self.imu: list[tuple] = []
+        self.mag: list[tuple] = []
+        self.prev_mag: tuple | None = None
+        self.zero_mag = 0
+        self.hr_temp = float("nan")
+        self.kind: str | None = None
+        self.n_msgs = 0
+
+    @property
+    def n(self) -> int:
+        return len(self.imu) + len(self.mag)
+
+    def add(self, msg: Any, typ: str) -> None:
+        self.kind = typ
+        self.n_msgs += 1
+        if typ == "HIGHRES_IMU":
+            fu = int(msg.fields_updated) or 0xFFFF
+            t = msg.time_usec * 1e-6
+            if fu & 0x1000:
+                self.hr_temp = float(msg.temperature)
+            if fu & 0x3F:
+                self.imu.append((t, msg.xgyro, msg.ygyro, msg.zgyro, msg.xacc, msg.yacc, msg.zacc,
+                                 self.hr_temp))
+            if fu & 0x1C0:
+                self.mag.append((t, msg.xmag, msg.ymag, msg.zmag))
+            return
+        t = msg.time_usec * 1e-6 if typ == "RAW_IMU" else msg.time_boot_ms * 1e-3
+        temp_c = getattr(msg, "temperature", 0)
+        self.imu.append((t, msg.xgyro, msg.ygyro, msg.zgyro, msg.xacc, msg.yacc, msg.zacc,
+                         temp_c * 0.01 if temp_c else float("nan")))
+        m = (msg.xmag, msg.ymag, msg.zmag)
+        if m == (0, 0, 0):
+            self.zero_mag += 1
+        elif m != self.prev_mag:
+            self.mag.append((t, *m))
+        self.prev_mag = m
+
+    def take(self) -> tuple[tuple, tuple]:
+        units = dict(_SI_UNITS if self.kind == "HIGHRES_IMU" else _INT_UNITS)
+        units.update({k: v for k, v in self.override.items() if v is not None})
+        a = np.asarray(self.imu, np.float64).reshape(-1, 8)
+        b = np.asarray(self.mag, np.float64).reshape(-1, 4)
+        self.imu, self.mag = [], []
+        imu = (a[:, 0], a[:, 1:4] * units["gyro"], a[:, 4:7] * units["acc"], a[:, 7])
+        return imu, (b[:, 0], b[:, 1:4] * units["mag"])
+
+
+def _source_key(msg: Any, typ: str) -> tuple:
+    if typ in ("RAW_IMU", "HIGHRES_IMU"):
+        inst = int(getattr(msg, "id", 0) or 0)
+    else:
+        inst = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}[typ]
+    return (msg.get_srcSystem(), msg.get_srcComponent(), typ, inst)
+
+
+def _describe(key: tuple) -> str:
+    sysid, compid, typ, inst = key
+    return f"{typ} id {inst} (system {sysid}, component {compid})"
+
+
+def _tell(conn: Any) -> int | str:
+    try:
+        return int(conn.f.tell())
+    except Exception:
+        return "?"
+
+
+def _q16(x: np.ndarray, scale: float) -> np.ndarray:
+    """Values → int16 counts of ``scale`` (rounded, clipped to the int16 range as a real link does)."""
+    return np.clip(np.rint(np.asarray(x, np.float64) / scale), *_INT16).astype(np.int64)
+
+
+def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
+    """Write ``data`` as a MAVLink 2 tlog of RAW_IMU messages (id 0), a HEARTBEAT every second.
+
+    One RAW_IMU per IMU sample: time_usec = t_imu µs (t_imu must be ≥ 0), acc mG, gyro mrad/s,
+    temperature c°C (NaN → 0 "not provided", 0 °C → 1 as the spec asks), mag mgauss = the latest mag
+    sample at or before that time (sample-and-hold; zeros before the first). Values are rounded and
+    clipped to int16. Each packet is prefixed by the 8-byte big-endian µs timestamp of tlogs
+    (``_TLOG_EPOCH_US`` + time_usec, so files are reproducible).
+    """
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    t = np.asarray(data.t_imu, np.float64)
+    if t.size and (not np.all(np.isfinite(t)) or t.min() < 0):
+        raise ValueError("write_tlog needs finite, non-negative IMU times")
+    usec = np.rint(t * 1e6).astype(np.int64)
+    acc = _q16(data.acc, G0 * 1e-3)
+    gyro = _q16(data.gyro, 1e-3)
+    temp = np.nan_to_num(np.asarray(data.temp, np.float64), nan=0.0)
+    temp_c = np.clip(np.rint(temp * 100.0), *_INT16).astype(np.int64)
+    temp_c[(temp_c == 0) & np.isfinite(data.temp)] = 1
+    mag = np.zeros((t.size, 3), np.int64)
+    if data.n_mag:
+        j = np.searchsorted(data.t_mag, t, side="right") - 1
+        mag[j >= 0] = _q16(data.mag, 1e-3)[j[j >= 0]]
+
+    mav = mavlink2.MAVLink(None, srcSystem=int(system_id), srcComponent=1)
+    hb = mav.heartbeat_encode(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
+                              mavlink2.MAV_STATE_ACTIVE, 3)
+    out = bytearray()
+
+    def put(msg: Any, us: int) -> None:
+        out.extend(struct.pack(">Q", _TLOG_EPOCH_US + us))
+        out.extend(msg.pack(mav))
+        mav.seq = (mav.seq + 1) % 256
+
+    next_hb = None
+    rows = np.concatenate([usec[:, None], acc, gyro, mag, temp_c[:, None]], axis=1).tolist()
+    with open(path, "wb") as f:
+        for us, ax, ay, az, gx, gy, gz, mx, my, mz, tc in rows:
+            if next_hb is None or us >= next_hb:
+                put(hb, us)
+                next_hb = us + 1_000_000
+            put(mav.raw_imu_encode(us, ax, ay, az, gx, gy, gz, mx, my, mz, 0, tc), us)
+            if len(out) > 1 << 20:
+                f.write(out)
+                out.clear()
+        f.write(out)

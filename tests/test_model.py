@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from onlinecal.model import (
-    Calibration,
-    SensorCalibration,
     T_N,
     T_R,
+    Calibration,
+    SensorCalibration,
     compose,
     decompose,
 )

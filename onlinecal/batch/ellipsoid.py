@@ -96,7 +96,8 @@ def fit_norm_lm(
 
     ``model``: ``"full"`` (o + symmetric M, 9 parameters), ``"diag"`` (o + diagonal M, 6) or
     ``"bias"`` (o + one common scale, 4) or ``"offset"`` (o alone, M fixed to M0, 3) — the reduced
-    models serve when the data cannot carry all nine. One pass of outlier rejection at ``reject_sigma`` × MAD, then a refit.
+    models serve when the data cannot carry all nine. Outlier rejection at ``reject_sigma`` × MAD
+    (where the points outnumber the parameters fourfold), then a refit.
     """
     x = np.asarray(x, float)
 

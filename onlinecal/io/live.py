@@ -85,11 +85,11 @@ def _reason(e: BaseException) -> str:
 class LiveSource:
     """RAW_IMU from a live MAVLink link, as ImuData blocks of about ``block_s`` s of samples.
 
-    ``url``: pymavlink connection string — ``udpin:HOST:PORT`` (listen; replies go to whoever sent
-    last), ``udpout:HOST:PORT`` (send to; the vehicle learns our address from our heartbeats),
-    ``tcp:HOST:PORT`` (connect), ``tcpin:HOST:PORT`` (accept), or a serial device ``/dev/ttyACM0`` with
-    an optional ``,BAUD`` (needs pyserial). The link is opened by the constructor (LogError if it
-    cannot be: ``url: cannot open connection: ...``).
+    ``url``: pymavlink connection string — ``udpin:HOST:PORT`` (listen; replies go to every address
+    heard from on this connection), ``udpout:HOST:PORT`` (send to; the vehicle learns our address from
+    our heartbeats), ``tcp:HOST:PORT`` (connect), ``tcpin:HOST:PORT`` (accept), or a serial device
+    ``/dev/ttyACM0`` with an optional ``,BAUD`` (needs pyserial). The link is opened by the constructor
+    (LogError if it cannot be: ``url: cannot open connection: ...``).
 
     ``rate_hz``: RAW_IMU rate asked for (0: ask for nothing). ``block_s``: s of data per block.
     ``reorder_window``: packets held back to repair reordering (adds that many samples of latency).
@@ -158,7 +158,8 @@ class LiveSource:
         self._mag_rows: list[tuple] = []
         self._block_wall: float | None = None  # wall time the pending block got its first sample
         self._last_data = now  # wall time of the last RAW_IMU of the source
-        self._done: str | None = None
+        self._done: str | None = None  # why the stream ends: 'duration' | 'timeout' | 'closed'
+        self._full = False  # duration_s of data emitted: later samples are not wanted
 
     # -- opening and closing ----------------------------------------------------------------------
     def _open(self) -> Any:
@@ -228,6 +229,8 @@ class LiveSource:
                         self._done = "closed"
                     else:
                         self._step()
+                if self._full:
+                    self._done = "duration"
                 if self._done:
                     break
                 block = self._ready_block(max_samples)
@@ -266,7 +269,7 @@ class LiveSource:
         try:
             self._send_due(link, now)
             n = 0
-            while n < _RECV_BATCH and not self._done:
+            while n < _RECV_BATCH and not self._full:
                 n += 1
                 try:
                     msg = link.conn.recv_msg()
@@ -346,7 +349,7 @@ class LiveSource:
     def _accept(self, msg: Any) -> None:
         st = self.stats
         st["received"] += 1
-        if self._done:
+        if self._full:
             return
         raw = int(msg.time_usec)
         fields = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro, msg.xmag, msg.ymag,
@@ -373,7 +376,7 @@ class LiveSource:
         self._max_us = max(self._max_us, us)
         heapq.heappush(self._heap, (us, fields))
         self._in_heap.add(us)
-        while len(self._heap) > self.reorder_window and not self._done:
+        while len(self._heap) > self.reorder_window and not self._full:
             self._emit(*self._pop())
 
     def _pop(self) -> tuple[int, tuple]:
@@ -382,9 +385,9 @@ class LiveSource:
         return us, fields
 
     def _flush_heap(self) -> None:
-        while self._heap and not self._done:
+        while self._heap and not self._full:
             self._emit(*self._pop())
-        if self._done:
+        if self._full:
             self._heap.clear()
             self._in_heap.clear()
 
@@ -407,11 +410,11 @@ class LiveSource:
                 self._in_heap.add(us)
             else:
                 self.stats["duplicates"] += 1
-        while len(self._heap) > self.reorder_window and not self._done:
+        while len(self._heap) > self.reorder_window and not self._full:
             self._emit(*self._pop())
 
     def _emit(self, us: int, fields: tuple) -> None:
-        if self._done:
+        if self._full:
             return
         if self._first_us is None:
             self._first_us = us
@@ -438,7 +441,7 @@ class LiveSource:
             self._recent_set.discard(self._recent.popleft())
         self.stats["emitted"] += 1
         if self.duration_s is not None and (us - self._first_us) * 1e-6 >= self.duration_s:
-            self._done = "duration"
+            self._full = True
 
     # -- blocks -----------------------------------------------------------------------------------
     def _ready_block(self, max_samples: int) -> ImuData | None:

@@ -118,7 +118,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
     ukf = _ukf()
     logs = _read_logs(a.logs, a)
     init = _initial(a, logs)
-    res = ukf.replay(logs, init, trace=a.trace)
+    res = ukf.replay(logs, init, trace_path=a.trace)
     _warn(getattr(res, "warnings", []))
     from .report import truth_table
 

@@ -1,0 +1,67 @@
+"""20-seed statistics of the UKF started from the batch result on the paper session.
+
+Per parameter: RMS over seeds of the online error, of the batch error, their ratio; share of parameters
+within 3σ (coverage); NEES of the 36 calibration terms against its chi-square band; wall time.
+
+    PYTHONPATH=. python benchmarks/ukf_stats.py [--seeds 20] [--start 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from scipy.stats import chi2
+
+from onlinecal.batch.pipeline import run_batch
+from onlinecal.model import PARAMS, SENSORS
+from onlinecal.sim import simulate
+from onlinecal.ukf import replay
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--start", type=int, default=0)
+    args = ap.parse_args()
+    e_on, e_b, z_on, nees, walls, divs = [], [], [], [], [], 0
+    for seed in range(args.start, args.start + args.seeds):
+        sim = simulate("paper", seed)
+        batch = run_batch([sim.data]).calibration
+        res = replay([sim.data], batch)
+        walls.append(res.wall_s)
+        divs += sum(e["kind"] == "divergence" for e in res.events)
+        tr = sim.truth.calibration
+        eo, eb, zo = [], [], []
+        for s in SENSORS:
+            for p in PARAMS:
+                o = res.calibration.sensor(s).params()[p] - tr.sensor(s).params()[p]
+                b = batch.sensor(s).params()[p] - tr.sensor(s).params()[p]
+                eo += list(o)
+                eb += list(b)
+                zo += list(o / np.asarray(res.calibration.sensor(s).sigma[p]))
+        e_on.append(eo)
+        e_b.append(eb)
+        z_on.append(zo)
+        nees.append(float(np.sum(np.square(zo))))
+    e_on, e_b, z_on = np.array(e_on), np.array(e_b), np.array(z_on)
+    names = [f"{s}.{p}.{a}" for s in SENSORS for p in PARAMS for a in "xyz"]
+    rms_on = np.sqrt((e_on**2).mean(0))
+    rms_b = np.sqrt((e_b**2).mean(0))
+    print(f"{'parameter':18s} {'rms online':>11s} {'rms batch':>11s} {'ratio':>6s} {'in 3σ':>6s}")
+    for i, nm in enumerate(names):
+        print(f"{nm:18s} {rms_on[i]:11.3e} {rms_b[i]:11.3e} {rms_on[i] / rms_b[i]:6.2f} "
+              f"{np.mean(np.abs(z_on[:, i]) < 3):6.2f}")
+    ratio = rms_on / rms_b
+    lo, hi = chi2.ppf([0.025, 0.975], 36)
+    print(f"ratio online/batch (RMS over seeds): median {np.median(ratio):.2f}, max {ratio.max():.2f}")
+    print(f"coverage (|err| < 3σ): {np.mean(np.abs(z_on) < 3):.3f}")
+    nees_a = np.array(nees)
+    inside = np.mean((nees_a >= lo) & (nees_a <= hi))
+    print(f"NEES (36 dof, per-parameter σ, correlations ignored): mean {nees_a.mean():.1f}, "
+          f"95% band [{lo:.1f}, {hi:.1f}], share of seeds inside {inside:.2f}")
+    print(f"divergence events: {divs}; wall per 309-s session: mean {np.mean(walls):.2f} s")
+
+
+if __name__ == "__main__":
+    main()

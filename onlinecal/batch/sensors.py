@@ -123,6 +123,13 @@ def fit_magnetometer(
     x = np.concatenate([s.data.mag for s in segs if s.data.has_mag])
     if x.shape[0] < 50:
         raise FitError(f"magnetometer: only {x.shape[0]} samples")
+    # An ellipsoid needs the field seen from directions spanning 3-D: a rest (a point) or a turn
+    # about one axis (a circle) leaves it undetermined, and LM would return a degenerate answer.
+    ev = np.linalg.eigvalsh(np.cov(x.T))
+    spread = float(np.sqrt(max(ev[0], 0.0)) / np.median(np.linalg.norm(x, axis=1)))
+    if spread < 0.05:
+        raise FitError(f"magnetometer: the field was seen from too few directions (least spread "
+                       f"{100 * spread:.1f} % of the reading, need 5 %); turn the unit through all orientations")
     o0, M0 = fit_ellipsoid_svd(x)
     fit = fit_norm_lm(x, 1.0, o0, M0)
     Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
@@ -181,7 +188,7 @@ def fit_accelerometer(
     model = "full" if ndir >= 9 else "diag" if ndir >= 6 else "bias" if ndir >= 4 else "offset"
     if model != "full":
         what = {"diag": "bias + per-axis scale", "bias": "bias + common scale",
-                "offset": "bias only (scale 1, no misalignment)"}[model]
+                "offset": "bias only (common scale from the mean norm, no misalignment fitted)"}[model]
         rep.warnings.append(f"accel: only {ndir} distinct static attitudes; fitted {what}")
     try:
         o0, M0 = fit_ellipsoid_svd(a) if a.shape[0] >= 10 else (np.zeros(3), np.eye(3))

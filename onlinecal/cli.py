@@ -6,7 +6,6 @@ Every command turns unusable input into one line on stderr and exit status 2, ne
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections.abc import Sequence
@@ -255,7 +254,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"onlinecal {a.cmd}: interrupted", file=sys.stderr)
         return 130
-
-
-def _json_dump(obj: Any, path: str) -> None:
-    Path(path).write_text(json.dumps(obj, indent=2) + "\n")

@@ -8,7 +8,6 @@ our own from the same sections. docs/make_results.py reports the same figures in
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,31 +17,23 @@ from onlinecal.batch.segment import moving_std
 from onlinecal.io import read_log
 from onlinecal.sim.motion import G0
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 FACES = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
 TURNS = ("x_rot", "y_rot", "z_rot")
 FERRARIS_RATE = 102.4
 
 
 @pytest.fixture(scope="module")
-def data() -> Path:
-    if not DATA.is_dir():
-        pytest.skip(f"measured data not present at {DATA} (see shared/data/README.md)")
-    return DATA
-
-
-@pytest.fixture(scope="module")
-def marg(data):
-    logs = {p.name: read_log(p) for p in sorted((data / "marg-set1").glob("*.csv"))}
+def marg(data_dir):
+    logs = {p.name: read_log(p) for p in sorted((data_dir / "marg-set1").glob("*.csv"))}
     assert len(logs) == 15
     return logs, run_batch(list(logs.values()))
 
 
 @pytest.fixture(scope="module")
-def ferraris(data):
-    csv = data / "ferraris" / "imucal-example-session.csv"
+def ferraris(data_dir):
+    csv = data_dir / "ferraris" / "imucal-example-session.csv"
     d = read_log(csv)
-    sec = json.loads((data / "ferraris" / "manual-sections.json").read_text())
+    sec = json.loads((data_dir / "ferraris" / "manual-sections.json").read_text())
     # The sections index CSV data rows; every row is an IMU sample and none is dropped, so they index
     # IMU samples too. Checked here so that a reader change cannot shift them silently.
     t_csv = np.loadtxt(csv, delimiter=",", skiprows=1, usecols=0)

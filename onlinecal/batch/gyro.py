@@ -331,10 +331,8 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     # it does not inherit the accel/mag alignment); the all-transitions fit otherwise.
     G = G_paper if (not missing or G_ref is None) else G_ref
     rep.figures["method"] = "phases (eqs. 28-31, 36)" if G is G_paper else "all transitions (eq. 36 generalised)"
-    if G is G_paper and G_ref is not None:
-        # σ from the phase scatter is not available in closed form; the transitions fit's covariance
-        # is an upper bound on it.
-        pass
+    # σ: the phase method has no closed-form covariance; the transitions fit's covariance (an upper
+    # bound on it) serves for both.
     sigma: dict[str, list[float]] = {"bias": sig_o.tolist()}
     if np.all(np.isfinite(cov)):
         L = sqrt_psd(cov)

@@ -20,7 +20,6 @@ session) and URL a pymavlink connection string, for example ``udpout:127.0.0.1:1
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from typing import Any
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.tlog import mavutil_v2
 
 G0 = 9.80665
 ACC_UNIT = G0 * 1e-3  # m/s² per RAW_IMU acc count (milli-g)
@@ -37,21 +37,6 @@ TEMP_UNIT = 0.01  # °C per count (centi-°C)
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 _INT16 = (-32768, 32767)
 _SERVER_SCHEMES = ("udpin:", "tcpin:")  # links whose peer is only known once it has sent something
-
-
-def mavutil_v2() -> Any:
-    """pymavlink's ``mavutil`` with the MAVLink 2 dialect selected.
-
-    pymavlink picks MAVLink 1 or 2 once per process from the ``MAVLINK20`` environment variable (or
-    switches when the first packet it parses is MAVLink 2). MAVLink 1 would silently drop RAW_IMU's
-    extension fields ``id`` and ``temperature``, so v2 is selected before any connection is made.
-    """
-    os.environ.setdefault("MAVLINK20", "1")
-    from pymavlink import mavutil
-
-    if getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "1.0") != "2.0":
-        mavutil.set_dialect(mavutil.current_dialect or "ardupilotmega")
-    return mavutil
 
 
 def _q16(x: Any, unit: float) -> np.ndarray:

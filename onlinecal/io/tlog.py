@@ -44,7 +44,7 @@ _TLOG_EPOCH_US = 1_700_000_000_000_000  # wall-clock base of written tlog timest
 _INT16 = (-32768, 32767)
 
 
-def _mavutil() -> Any:
+def mavutil_v2() -> Any:
     """pymavlink's mavutil with the MAVLink 2 parser (which also reads MAVLink 1 packets).
 
     pymavlink switches to MAVLink 2 itself only when the very first packet of a file is MAVLink 2
@@ -75,7 +75,7 @@ class TlogReader:
         filt = SampleFilter(self.path, unit="messages")
         self.warnings = filt.warnings
         asm = BlockAssembler(self.path, filt.warnings, max_samples)
-        mavutil = _mavutil()
+        mavutil = mavutil_v2()
         try:
             conn = mavutil.mavlogfile(self.path, robust_parsing=True)
         except Exception as e:  # pymavlink's own failures on odd files: report, never a traceback

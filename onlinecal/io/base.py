@@ -78,10 +78,19 @@ class ImuData:
         return float((self.n_imu - 1) / (self.t_imu[-1] - self.t_imu[0]))
 
     def slice_imu(self, i0: int, i1: int) -> ImuData:
-        """Samples of IMU rows i0:i1 and the mag samples in the same time span."""
+        """Samples of IMU rows i0:i1 and the mag samples from t_imu[i0] up to (not including) t_imu[i1].
+
+        The mag window runs to the next chunk's first IMU stamp, and the first/last chunk take the mag samples
+        before/after all IMU samples, so consecutive slices partition the mag samples: none is lost or doubled
+        when a log is fed in chunks.
+        """
+        n = self.n_imu
+        i0, i1 = max(0, min(i0, n)), max(0, min(i1, n))
         t = self.t_imu[i0:i1]
         if t.size:
-            m = (self.t_mag >= t[0]) & (self.t_mag <= t[-1])
+            lo = -np.inf if i0 == 0 else self.t_imu[i0]
+            hi = np.inf if i1 >= n else self.t_imu[i1]
+            m = (self.t_mag >= lo) & (self.t_mag < hi)
         else:
             m = np.zeros(self.n_mag, bool)
         return ImuData(

@@ -88,15 +88,6 @@ def test_too_little_data_is_exit_2_not_traceback(tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr and "short.csv" in r.stderr
 
 
-def test_unfinished_commands_say_so(tmp_path):
-    r = run("diagnose", "x.csv")
-    assert r.returncode == 3 and "not implemented" in r.stderr
-    r = run("simulate", "--out", str(tmp_path / "e.csv"), "--effect", "time_offset")
-    assert r.returncode == 3 and not (tmp_path / "e.csv").exists()
-    r = run("simulate", "--out", str(tmp_path / "e.csv"), "--effect", "no_such_effect")
-    assert r.returncode == 3 and "unknown effect" in r.stderr
-
-
 def test_demo_writes_its_files(tmp_path):
     r = run("demo", "--out", str(tmp_path / "demo"))
     assert r.returncode == 0, r.stderr

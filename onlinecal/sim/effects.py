@@ -1,22 +1,571 @@
-"""The effects library: what real sensors do that the paper's model lacks (contract vocabulary).
+"""The effects library: what real MEMS sensors do that the paper's model (Zhang et al. 2014, eq. 1) lacks.
 
-This version knows the names but does not yet synthesise them; asking for one is an error rather
-than a session silently simulated without it.
+Vocabulary, keys, defaults and physics follow the contract's effect table (shared/spec/contract.md and
+notes/effects_spec.md). Each effect is a small frozen dataclass with
+
+* ``apply(ctx: SimContext)`` — changes the raw signals of ``onlinecal.sim.sensors.simulate`` in place;
+* ``describe() -> dict`` — ``{"effect", "sensor", "axis", **parameters}`` with exactly the spec's keys
+  (stored in the truth file; what ``diagnose`` must recover);
+* ``stage`` — where in the signal chain it acts. ``simulate`` applies effects by stage (stable within
+  a stage), whatever order they were given in, so combinations are well defined:
+
+  ====  ======================================  ===================================================
+  0     time_offset                             which instant of the motion a sample holds
+  1     lever_arm                               the accelerometer's input (specific force at r)
+  --    paper model ``raw = M⁻¹·c + o``          (recomputed for a sensor whose input changed)
+  2     temperature_bias, bias_drift,           additive, in raw units, at the sample's stamp
+        g_sensitivity
+  3     scale_nonlinearity                      ``raw ← raw·(1 + c·|raw|)`` on the whole raw value
+  --    white noise, ADC quantisation           (``simulate``)
+  4     axis_sign                               driver/mounting sign error, after the ADC
+  5     saturation                              the ADC rail, after noise: clipped to ±limit
+  ====  ======================================  ===================================================
+
+Random numbers: only ``bias_drift`` draws random numbers, and it draws them from its own generator
+(``SimContext.child_rng``, seeded by the session seed and the effect's description), never from the
+session generator — so a session with effects has exactly the same white-noise draws as the clean
+session of the same seed, and ``raw_effect − raw_clean`` is the effect alone (up to quantisation).
 """
 
 from __future__ import annotations
 
+import json
+import math
+import zlib
+from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:  # runtime import would be circular (sensors imports this module)
+    from .sensors import SimContext
+
+Array = NDArray[np.float64]
+
 EFFECTS = ("temperature_bias", "bias_drift", "g_sensitivity", "time_offset", "saturation",
            "scale_nonlinearity", "lever_arm", "axis_sign")
+AXES = ("x", "y", "z")
+UNIT = {"gyro": "rad/s", "accel": "m/s^2", "mag": "mag unit"}
+
+# Default saturation limits: ±125 dps (the smallest gyro range of ICM-20602/BMI088-class parts) and ±2 g.
+DEFAULT_LIMIT = {"gyro": 2.182, "accel": 19.61}
 
 
 class EffectError(ValueError):
-    """An effect spec that cannot be honoured."""
+    """An effect spec (or a combination of effects) that cannot be honoured."""
 
 
-def parse_effect(spec: str) -> object:
-    """Parse ``NAME`` or ``NAME:key=value,...``. Raises EffectError (none is implemented yet)."""
-    name = spec.split(":", 1)[0].strip()
-    if name not in EFFECTS:
+def _axes(axis: str | None) -> list[int]:
+    return [0, 1, 2] if axis is None else [AXES.index(axis)]
+
+
+def _check_sensor(name: str, sensor: str, allowed: tuple[str, ...]) -> None:
+    if sensor not in allowed:
+        raise EffectError(f"{name}: sensor must be one of {', '.join(allowed)} (got {sensor!r})")
+
+
+def _check_axis(name: str, axis: str | None) -> None:
+    if axis is not None and axis not in AXES:
+        raise EffectError(f"{name}: axis must be x, y, z or all (got {axis!r})")
+
+
+def _check_num(name: str, key: str, v: float, lo: float | None = None, hi: float | None = None,
+               lo_open: bool = False) -> None:
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+        raise EffectError(f"{name}: {key} must be a finite number (got {v!r})")
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise EffectError(f"{name}: {key} must be {'>' if lo_open else '>='} {lo:g} (got {v:g})")
+    if hi is not None and v > hi:
+        raise EffectError(f"{name}: {key} must be <= {hi:g} (got {v:g})")
+
+
+class Effect:
+    """Base of every effect: ``describe`` from the dataclass fields, a stable identity for child rngs."""
+
+    name: ClassVar[str] = ""
+    stage: ClassVar[int] = 2
+    sensor: str
+    axis: str | None
+
+    def params(self) -> dict[str, Any]:
+        """The spec's parameter keys (everything but sensor and axis) and their values."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("sensor", "axis")}  # type: ignore[arg-type]
+
+    def describe(self) -> dict[str, Any]:
+        """``{"effect": NAME, "sensor": ..., "axis": "x"|"y"|"z"|None, **parameters}`` (spec)."""
+        return {"effect": self.name, "sensor": self.sensor, "axis": getattr(self, "axis", None), **self.params()}
+
+    def spec(self) -> str:
+        """The ``NAME:key=value,...`` string that :func:`parse_effect` turns back into this effect."""
+        kv = []
+        for f in fields(self):  # type: ignore[arg-type]
+            k, v = f.name, getattr(self, f.name)
+            kv.append(f"{k}={'all' if v is None else v!r}".replace("'", ""))
+        return f"{self.name}:{','.join(kv)}"
+
+    def apply(self, ctx: SimContext) -> None:  # pragma: no cover - every subclass overrides
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class TemperatureBias(Effect):
+    """A bias proportional to the sensor's temperature rise: ``raw_axis += coeff·(T − 25 °C)``.
+
+    The simulator's temperature is replaced by a warm-up with a partial cool-down in the second half,
+    so temperature is not a linear function of time (a temperature coefficient is then separable from
+    a linear drift)::
+
+        T(t) = 25 + rise·(1 − e^{−t/tau}) − 0.5·rise·(1 − e^{−max(0, t − t_end/2)/tau})      [°C]
+
+    Units: coeff in rad/s/°C (gyro) or m/s²/°C (accel); rise °C; tau s. Real parts (consumer MEMS of
+    the ICM-20602/BMI088 class, orders of magnitude): gyro zero-rate tempco 0.01–0.05 dps/°C ≈
+    2e-4…9e-4 rad/s/°C; accel zero-g tempco 0.2–1 mg/°C ≈ 2e-3…1e-2 m/s²/°C. A board warms by
+    10–20 °C within minutes of power-on.
+    """
+
+    name: ClassVar[str] = "temperature_bias"
+    stage: ClassVar[int] = 2
+    sensor: str = "gyro"
+    axis: str | None = None
+    coeff: float = 5e-4
+    rise: float = 15.0
+    tau: float = 90.0
+
+    def __post_init__(self) -> None:
+        _check_sensor(self.name, self.sensor, ("gyro", "accel"))
+        _check_axis(self.name, self.axis)
+        _check_num(self.name, "coeff", self.coeff, -1.0, 1.0)
+        _check_num(self.name, "rise", self.rise, -100.0, 100.0)
+        _check_num(self.name, "tau", self.tau, 0.0, 1e6, lo_open=True)
+
+    def temperature(self, t: Array, t_end: float) -> Array:
+        """T(t) in °C for sample times t (N,) s of a session ending at t_end s."""
+        late = np.maximum(0.0, t - t_end / 2)
+        return 25.0 + self.rise * (1 - np.exp(-t / self.tau)) - 0.5 * self.rise * (1 - np.exp(-late / self.tau))
+
+    def apply(self, ctx: SimContext) -> None:
+        T = self.temperature(ctx.t_imu, float(ctx.t_imu[-1]))
+        if ctx.temp_effect is not None and ctx.temp_effect != (self.rise, self.tau):
+            raise EffectError("temperature_bias: effects combined in one session must share rise and tau "
+                              "(there is one temperature)")
+        ctx.temp_effect = (self.rise, self.tau)
+        ctx.temp[:] = T
+        raw = ctx.raw(self.sensor)
+        raw[:, _axes(self.axis)] += self.coeff * (T - 25.0)[:, None]
+
+
+@dataclass(frozen=True)
+class BiasDrift(Effect):
+    """Bias instability as a rate random walk: ``raw_axis += b(t)``, ``b(0) = 0``,
+    ``b(t_k) − b(t_{k−1}) ~ N(0, density²·(t_k − t_{k−1}))``; independent walks per axis.
+
+    Units: density in rad/s/√s (gyro) or m/s²/√s (accel) — the rate-random-walk coefficient K of an
+    Allan-deviation plot (slope +1/2). Real parts (orders of magnitude): consumer MEMS gyros
+    K ≈ 1e-5…1e-4 rad/s/√s, accelerometers ≈ 1e-4…1e-3 m/s²/√s.
+    The draws come from the effect's own generator (``ctx.child_rng``), not the session's.
+    """
+
+    name: ClassVar[str] = "bias_drift"
+    stage: ClassVar[int] = 2
+    sensor: str = "gyro"
+    axis: str | None = None
+    density: float = 1e-4
+
+    def __post_init__(self) -> None:
+        _check_sensor(self.name, self.sensor, ("gyro", "accel"))
+        _check_axis(self.name, self.axis)
+        _check_num(self.name, "density", self.density, 0.0, 1.0)
+
+    def walk(self, t: Array, rng: np.random.Generator) -> Array:
+        """The random walk b (N, n_axes) at times t (N,), b[0] = 0."""
+        ax = _axes(self.axis)
+        dt = np.diff(t)
+        inc = rng.standard_normal((t.shape[0] - 1, len(ax))) * (self.density * np.sqrt(dt))[:, None]
+        return np.vstack([np.zeros((1, len(ax))), np.cumsum(inc, axis=0)])
+
+    def apply(self, ctx: SimContext) -> None:
+        b = self.walk(ctx.t_imu, ctx.child_rng(self))
+        ctx.raw(self.sensor)[:, _axes(self.axis)] += b
+        ctx.note(self, {"walk_final": b[-1].tolist()})
+
+
+@dataclass(frozen=True)
+class GSensitivity(Effect):
+    """Gyro output responding to specific force: ``raw_gyro_i += coeff·f_i``.
+
+    ``f`` is the true specific force (m/s²) in the body frame B at the gyro's sample instants (the
+    centre of rotation, not the accelerometer's lever-arm position); it is added to the gyro's raw
+    value of the same axis index (a diagonal g-sensitivity). Units: coeff rad/s per m/s². Real parts
+    (orders of magnitude): consumer MEMS gyros ~0.1 dps/g ≈ 1.8e-4 rad/s per m/s², older parts up to
+    ~0.3 dps/g, tactical-grade MEMS < 0.01 dps/g.
+    """
+
+    name: ClassVar[str] = "g_sensitivity"
+    stage: ClassVar[int] = 2
+    sensor: str = "gyro"
+    axis: str | None = None
+    coeff: float = 1e-4
+
+    def __post_init__(self) -> None:
+        _check_sensor(self.name, self.sensor, ("gyro",))
+        _check_axis(self.name, self.axis)
+        _check_num(self.name, "coeff", self.coeff, -0.1, 0.1)
+
+    def apply(self, ctx: SimContext) -> None:
+        ax = _axes(self.axis)
+        ctx.gyro[:, ax] += self.coeff * ctx.motion["gyro"].f[:, ax]
+
+
+@dataclass(frozen=True)
+class TimeOffset(Effect):
+    """One sensor stamped late (or early): its sample stamped t holds the value at time t − seconds.
+
+    The trajectory is re-evaluated at the shifted instants and the paper model applied again, so the
+    effect is exact (no interpolation). ``seconds`` > 0: stamped late; < 0: early. Real systems: an
+    I²C magnetometer read through a driver queue lags the SPI IMU by 5–50 ms; a gyro/accel pair from
+    two dies with different digital low-pass filters differ by their group delays (a few ms to ~20 ms).
+    """
+
+    name: ClassVar[str] = "time_offset"
+    stage: ClassVar[int] = 0
+    sensor: str = "mag"
+    seconds: float = 0.02
+
+    @property
+    def axis(self) -> None:
+        return None
+
+    def __post_init__(self) -> None:
+        _check_sensor(self.name, self.sensor, ("gyro", "accel", "mag"))
+        _check_num(self.name, "seconds", self.seconds, -1.0, 1.0)
+
+    def apply(self, ctx: SimContext) -> None:
+        t = ctx.t_mag if self.sensor == "mag" else ctx.t_imu
+        ctx.motion[self.sensor] = ctx.trajectory.evaluate(t - self.seconds)
+        ctx.remodel(self.sensor)
+
+
+@dataclass(frozen=True)
+class Saturation(Effect):
+    """Readings clipped at ±limit on every axis of one sensor (the ADC rail), after noise.
+
+    The sensor's ``full_scale`` becomes ``limit`` and the quantised readings are clipped to exactly
+    ±limit. Units: limit rad/s (gyro) or m/s² (accel). Real parts: selectable ranges ±125…±2000 dps
+    (2.18…34.9 rad/s) and ±2…±16 g; drivers that leave the power-on range (±250 dps, ±2 g) saturate in
+    a fast spin or a hard landing. Default ±125 dps / ±2 g.
+    """
+
+    name: ClassVar[str] = "saturation"
+    stage: ClassVar[int] = 5
+    sensor: str = "gyro"
+    limit: float | None = None
+
+    @property
+    def axis(self) -> None:
+        return None
+
+    def __post_init__(self) -> None:
+        _check_sensor(self.name, self.sensor, ("gyro", "accel"))
+        if self.limit is None:
+            object.__setattr__(self, "limit", DEFAULT_LIMIT[self.sensor])
+        _check_num(self.name, "limit", self.limit, 0.0, 1e6, lo_open=True)  # type: ignore[arg-type]
+
+    def apply(self, ctx: SimContext) -> None:
+        lim = float(self.limit)  # type: ignore[arg-type]
+        spec = ctx.specs[self.sensor] = replace(ctx.specs[self.sensor], full_scale=lim)
+        # The quantiser clips at lim and rounds, so the top code is lim rounded to the LSB grid; the
+        # readings at that code are the clipped ones and read exactly ±lim (the rail).
+        top = round(lim / spec.lsb) * spec.lsb if spec.lsb > 0 else lim
+
+        def rail(out: dict[str, Array]) -> None:
+            x = out[self.sensor]
+            x[:] = np.where(np.abs(x) >= top, np.sign(x) * lim, x)
+            ctx.note(self, {"clipped_fraction": float(np.mean(np.any(np.abs(x) >= lim, axis=1)))})
+
+        ctx.post.append(rail)
+
+
+@dataclass(frozen=True)
+class ScaleNonlinearity(Effect):
+    """A scale factor that grows with the input: ``raw_i ← raw_i·(1 + coeff·|raw_i|)``.
+
+    Acts on the whole raw value (after the paper model and the additive effects). Units: coeff in
+    1/(rad/s) (gyro) or 1/(m/s²) (accel). Real parts (orders of magnitude): consumer MEMS gyros
+    specify a scale non-linearity of ~0.1 % of full scale; expressed as this quadratic coefficient
+    that is 1e-4…1e-3 per rad/s over a wide range and up to ~5e-3 per rad/s over ±125 dps.
+    """
+
+    name: ClassVar[str] = "scale_nonlinearity"
+    stage: ClassVar[int] = 3
+    sensor: str = "gyro"
+    axis: str | None = None
+    coeff: float = 2e-3
+
+    def __post_init__(self) -> None:
+        _check_sensor(self.name, self.sensor, ("gyro", "accel"))
+        _check_axis(self.name, self.axis)
+        _check_num(self.name, "coeff", self.coeff, -0.1, 0.1)
+
+    def apply(self, ctx: SimContext) -> None:
+        raw = ctx.raw(self.sensor)
+        ax = _axes(self.axis)
+        x = raw[:, ax]
+        if self.coeff < 0 and np.any(1 + 2 * self.coeff * np.abs(x) <= 0):
+            raise EffectError(f"scale_nonlinearity: coeff {self.coeff:g} folds the signal over "
+                              f"(|raw| up to {np.abs(x).max():.3g}); the map would not be invertible")
+        raw[:, ax] = x * (1 + self.coeff * np.abs(x))
+
+
+@dataclass(frozen=True)
+class LeverArm(Effect):
+    """Accelerometer at r (m, body frame) from the centre of rotation:
+    ``f_meas = f + ω̇×r + ω×(ω×r)`` (tangential + centripetal), before the accelerometer's model.
+
+    ω, ω̇ are the trajectory's body rate and its derivative (central difference of the analytic rate,
+    h = 1e-5 s). Real boards: the IMU sits 1–10 cm from a vehicle's or a turntable's rotation centre;
+    at 2.5 rad/s and 5 cm the centripetal term is 0.3 m/s² (3 % of g).
+    """
+
+    name: ClassVar[str] = "lever_arm"
+    stage: ClassVar[int] = 1
+    x: float = 0.05
+    y: float = 0.03
+    z: float = -0.02
+
+    @property
+    def sensor(self) -> str:  # type: ignore[override]
+        return "accel"
+
+    @property
+    def axis(self) -> None:
+        return None
+
+    @property
+    def r(self) -> Array:
+        return np.array([self.x, self.y, self.z])
+
+    def __post_init__(self) -> None:
+        for k in ("x", "y", "z"):
+            _check_num(self.name, k, getattr(self, k), -1.0, 1.0)
+
+    def params(self) -> dict[str, Any]:
+        return {"x": self.x, "y": self.y, "z": self.z}
+
+    @staticmethod
+    def acceleration(omega: Array, omega_dot: Array, r: Array) -> Array:
+        """ω̇×r + ω×(ω×r), (N, 3) m/s² for ω (N, 3) rad/s, ω̇ (N, 3) rad/s², r (3,) m."""
+        return np.cross(omega_dot, r) + np.cross(omega, np.cross(omega, r))
+
+    def apply(self, ctx: SimContext) -> None:
+        m = ctx.motion["accel"]
+        h = 1e-5
+        w_dot = (ctx.trajectory.evaluate(m.t + h).omega - ctx.trajectory.evaluate(m.t - h).omega) / (2 * h)
+        ctx.inputs["accel"] = m.f + self.acceleration(m.omega, w_dot, self.r)
+        ctx.remodel("accel")
+
+
+@dataclass(frozen=True)
+class AxisSign(Effect):
+    """One axis with inverted sign (driver or mounting error): ``raw_axis ← −raw_axis``.
+
+    Applied after the ADC (a driver's sign), so the flipped axis is exactly the negative of the clean
+    reading. Real systems: a board rotation parameter or a driver table entry wrong for one axis; the
+    result is a left-handed sensor triad (det of the calibration matrix < 0).
+    """
+
+    name: ClassVar[str] = "axis_sign"
+    stage: ClassVar[int] = 4
+    sensor: str = "gyro"
+    axis: str | None = "z"
+
+    def __post_init__(self) -> None:
+        _check_sensor(self.name, self.sensor, ("gyro", "accel", "mag"))
+        _check_axis(self.name, self.axis)
+
+    def params(self) -> dict[str, Any]:
+        return {}
+
+    def apply(self, ctx: SimContext) -> None:
+        ax = _axes(self.axis)
+
+        def flip(out: dict[str, Array]) -> None:
+            out[self.sensor][:, ax] *= -1.0
+
+        ctx.post.append(flip)
+
+
+EFFECT_CLASSES: dict[str, type[Effect]] = {
+    c.name: c for c in (TemperatureBias, BiasDrift, GSensitivity, TimeOffset, Saturation, ScaleNonlinearity,
+                        LeverArm, AxisSign)
+}
+assert tuple(EFFECT_CLASSES) == EFFECTS
+
+# Keys of each effect and their defaults (None: depends on the sensor, see DEFAULT_LIMIT; axis None = all).
+EFFECT_KEYS: dict[str, dict[str, Any]] = {
+    n: {f.name: f.default for f in fields(c)}  # type: ignore[arg-type]
+    for n, c in EFFECT_CLASSES.items()
+}
+_STR_KEYS = ("sensor", "axis")
+
+
+def _value(name: str, key: str, text: str) -> Any:
+    if key == "axis":
+        return None if text == "all" else text
+    if key == "sensor":
+        return text
+    try:
+        v = float(text)
+    except ValueError:
+        raise EffectError(f"{name}: {key} must be a number (got {text!r})") from None
+    if not math.isfinite(v):
+        raise EffectError(f"{name}: {key} must be finite (got {text!r})")
+    return v
+
+
+def make_effect(name: str, **params: Any) -> Effect:
+    """An effect by name with keyword parameters (spec keys; ``axis="all"`` or None for every axis)."""
+    if name not in EFFECT_CLASSES:
         raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
-    raise EffectError(f"effect {name!r} is not implemented in this version; no session was written")
+    valid = EFFECT_KEYS[name]
+    for k in params:
+        if k not in valid:
+            raise EffectError(f"{name}: unknown key {k!r} (valid: {', '.join(valid)})")
+    if params.get("axis") == "all":
+        params["axis"] = None
+    for k, v in params.items():
+        if k in _STR_KEYS and v is not None and not isinstance(v, str):
+            raise EffectError(f"{name}: {k} must be a string (got {v!r})")
+        if k not in _STR_KEYS and isinstance(v, int) and not isinstance(v, bool):
+            params[k] = float(v)
+    return EFFECT_CLASSES[name](**params)
+
+
+def parse_effect(spec: str) -> Effect:
+    """Parse ``NAME`` or ``NAME:key=value,...`` into an effect (contract). Raises EffectError naming the
+    spec and the problem: unknown effect, unknown key (with the valid keys), repeated key, bad value."""
+    name, _, rest = spec.strip().partition(":")
+    name = name.strip()
+    params: dict[str, Any] = {}
+    try:
+        if name not in EFFECT_CLASSES:
+            raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+        for item in (s.strip() for s in rest.split(",")) if rest.strip() else ():
+            key, eq, text = item.partition("=")
+            key, text = key.strip(), text.strip()
+            if not eq or not key or not text:
+                raise EffectError(f"{name}: expected key=value, got {item!r}")
+            if key not in EFFECT_KEYS[name]:
+                raise EffectError(f"{name}: unknown key {key!r} (valid: {', '.join(EFFECT_KEYS[name])})")
+            if key in params:
+                raise EffectError(f"{name}: key {key!r} given twice")
+            params[key] = _value(name, key, text)
+        return make_effect(name, **params)
+    except EffectError as e:
+        raise EffectError(f"effect spec {spec!r}: {e}") from None
+
+
+def from_describe(d: dict[str, Any]) -> Effect:
+    """Inverse of ``describe()`` (e.g. from a truth file); informative extras such as
+    ``clipped_fraction`` are ignored."""
+    name = d.get("effect")
+    if name not in EFFECT_CLASSES:
+        raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+    keys = EFFECT_KEYS[name]
+    return make_effect(name, **{k: v for k, v in d.items() if k in keys})
+
+
+def _touches(e: Effect) -> set[tuple[str, int]]:
+    ax = [0, 1, 2] if e.axis is None else [AXES.index(e.axis)]
+    return {(e.sensor, a) for a in ax}
+
+
+def check_combination(effects: list[Any] | tuple[Any, ...]) -> None:
+    """Effects of one session must not overlap: one effect of each name per sensor axis (a second
+    time_offset, saturation or sign flip of the same sensor is ambiguous), and temperature_bias effects
+    share rise and tau (there is one temperature). Raises EffectError."""
+    seen: dict[tuple[str, str, int], Effect] = {}
+    temps = set()
+    for e in effects:
+        if not isinstance(e, Effect):
+            continue
+        if isinstance(e, TemperatureBias):
+            temps.add((e.rise, e.tau))
+        for s, a in _touches(e):
+            key = (e.name, s, a)
+            if key in seen:
+                raise EffectError(f"{e.name}: two effects act on {s} axis {AXES[a]} ({seen[key].spec()} and "
+                                  f"{e.spec()})")
+            seen[key] = e
+    if len(temps) > 1:
+        raise EffectError("temperature_bias: effects combined in one session must share rise and tau")
+
+
+def order_effects(effects: list[Any] | tuple[Any, ...]) -> list[Any]:
+    """Effects in signal-chain order (``stage``; stable within a stage) after :func:`check_combination`."""
+    check_combination(effects)
+    return sorted(effects, key=lambda e: getattr(e, "stage", 2))
+
+
+def rng_tag(e: Any) -> int:
+    """A 32-bit tag of an effect's description (seeds its child generator independently of order)."""
+    return zlib.crc32(json.dumps(e.describe(), sort_keys=True).encode())
+
+
+# -- random effects for hidden-effect tests --------------------------------------------------------
+
+def _session_raw(session: Any, sensor: str) -> Array:
+    data = getattr(session, "data", session)
+    raw = getattr(data, {"gyro": "gyro", "accel": "acc", "mag": "mag"}[sensor], None)
+    if raw is None:
+        raise EffectError("saturation: random_effect needs the session (Simulation or ImuData) to set the limit")
+    return np.asarray(raw, float)
+
+
+def random_effect(name: str, rng: np.random.Generator, session: Any = None) -> Effect:
+    """An effect of a realistic size, drawn from the spec table's test ranges.
+
+    Magnitudes uniform in the range, signs random where the physics has a sign; axis uniform over
+    x, y, z, all (single-axis for axis_sign); sensor where the spec allows a choice:
+
+    * temperature_bias — gyro |coeff| 2e-4…1e-3 rad/s/°C or accel 3e-3…1e-2 m/s²/°C (rise, tau default);
+    * bias_drift — gyro density 5e-5…3e-4 rad/s/√s;
+    * g_sensitivity — |coeff| 5e-5…5e-4 rad/s per m/s²;
+    * time_offset — ±(0.01…0.08) s on gyro, accel or mag;
+    * saturation — gyro or accel, limit 0.6…0.9 × the session's peak |raw| over its axes
+      (``session``: the clean Simulation or its ImuData of the same profile/seed; required);
+    * scale_nonlinearity — gyro coeff 1e-3…5e-3 per rad/s;
+    * lever_arm — |r| 0.02…0.1 m in a uniformly random direction;
+    * axis_sign — random sensor and axis.
+    """
+    def sign() -> float:
+        return float(rng.choice([-1.0, 1.0]))
+
+    def axis() -> str:
+        return str(rng.choice(["x", "y", "z", "all"]))
+
+    if name == "temperature_bias":
+        sensor = str(rng.choice(["gyro", "accel"]))
+        lo, hi = (2e-4, 1e-3) if sensor == "gyro" else (3e-3, 1e-2)
+        return make_effect(name, sensor=sensor, axis=axis(), coeff=sign() * float(rng.uniform(lo, hi)))
+    if name == "bias_drift":
+        return make_effect(name, sensor="gyro", axis=axis(), density=float(rng.uniform(5e-5, 3e-4)))
+    if name == "g_sensitivity":
+        return make_effect(name, axis=axis(), coeff=sign() * float(rng.uniform(5e-5, 5e-4)))
+    if name == "time_offset":
+        return make_effect(name, sensor=str(rng.choice(["gyro", "accel", "mag"])),
+                           seconds=sign() * float(rng.uniform(0.01, 0.08)))
+    if name == "saturation":
+        sensor = str(rng.choice(["gyro", "accel"]))
+        peak = float(np.abs(_session_raw(session, sensor)).max())
+        return make_effect(name, sensor=sensor, limit=float(rng.uniform(0.6, 0.9)) * peak)
+    if name == "scale_nonlinearity":
+        return make_effect(name, sensor="gyro", axis=axis(), coeff=float(rng.uniform(1e-3, 5e-3)))
+    if name == "lever_arm":
+        u = rng.standard_normal(3)
+        r = u / np.linalg.norm(u) * float(rng.uniform(0.02, 0.1))
+        return make_effect(name, x=float(r[0]), y=float(r[1]), z=float(r[2]))
+    if name == "axis_sign":
+        return make_effect(name, sensor=str(rng.choice(["gyro", "accel", "mag"])),
+                           axis=str(rng.choice(["x", "y", "z"])))
+    raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")

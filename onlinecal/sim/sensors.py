@@ -2,12 +2,16 @@
 
 raw = calibration.inv().apply(truth) + white noise, then ADC quantisation and range clipping of a
 typical MEMS part (ICM-20602-class IMU, IST8310-class magnetometer). Effects from the contract's
-vocabulary (``onlinecal.sim.effects``) act on the raw signals between the model and the noise.
+vocabulary (``onlinecal.sim.effects``) act in signal-chain order (``stage``): on the motion a sensor
+samples (time_offset, lever_arm), on the raw signals between the model and the noise (the others), or on
+the quantised readings (axis_sign, saturation). They never draw from the session's generator, so a
+session with effects has the clean session's noise draws; without effects the output is unchanged.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,6 +21,7 @@ from numpy.typing import NDArray
 
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
+from .effects import order_effects
 from .motion import G0, MotionSample, Trajectory, flight_trajectory, paper_trajectory
 
 Array = NDArray[np.float64]
@@ -137,7 +142,14 @@ class Truth:
 
 @dataclass
 class SimContext:
-    """Everything an effect may read or change, per clock. Raw arrays are modified in place."""
+    """Everything an effect may read or change, per clock. Raw arrays are modified in place.
+
+    ``motion`` holds, per sensor, the truth at the instants that sensor's samples hold (a time_offset
+    re-evaluates it); ``inputs`` an input that replaces the motion's (the lever-arm specific force);
+    :meth:`remodel` re-applies the paper model to them. ``post`` are callables run on the noisy,
+    quantised readings ``{"gyro", "accel", "mag"}`` (sign errors, the ADC rail). ``info`` collects
+    informative figures per effect (merged into the truth file's effect entries).
+    """
 
     t_imu: Array
     t_mag: Array
@@ -153,6 +165,49 @@ class SimContext:
     mag_rate: float
     specs: dict[str, SensorSpec]
     noise_scale: dict[str, float] = field(default_factory=lambda: {"gyro": 1.0, "accel": 1.0, "mag": 1.0})
+    seed: int = 0
+    trajectory: Trajectory | None = None
+    h_W: Array | None = None  # unit field in the world frame
+    motion: dict[str, MotionSample] = field(default_factory=dict)
+    inputs: dict[str, Array] = field(default_factory=dict)
+    post: list[Callable[[dict[str, Array]], None]] = field(default_factory=list)
+    info: dict[int, dict[str, Any]] = field(default_factory=dict)
+    temp_effect: tuple[float, float] | None = None  # (rise, tau) of the temperature_bias that set temp
+
+    def __post_init__(self) -> None:
+        for k, m in (("gyro", self.motion_imu), ("accel", self.motion_imu), ("mag", self.motion_mag)):
+            self.motion.setdefault(k, m)
+
+    def raw(self, sensor: str) -> Array:
+        """The raw (N, 3) array of ``sensor`` (gyro, accel, mag), modified in place by effects."""
+        return {"gyro": self.gyro, "accel": self.acc, "mag": self.mag}[sensor]
+
+    def remodel(self, sensor: str) -> None:
+        """Raw = the truth model's inverse (paper eq. 1, ``raw = M⁻¹ c + o``) of the sensor's input:
+        ``inputs[sensor]`` if set, else the motion's body rate, specific force or body-frame field."""
+        m = self.motion[sensor]
+        if sensor in self.inputs:
+            c = self.inputs[sensor]
+        elif sensor == "gyro":
+            c = m.omega
+        elif sensor == "accel":
+            c = m.f
+        else:
+            h_W = field_world() if self.h_W is None else self.h_W
+            c = np.einsum("nji,j->ni", m.R, h_W)
+        cal = self.truth.sensor(sensor)
+        assert cal is not None
+        self.raw(sensor)[:] = cal.inv().apply(c)
+
+    def child_rng(self, effect: Any) -> np.random.Generator:
+        """A generator of the effect's own, independent of the session's noise draws: seeded by the
+        session seed and a CRC of the effect's description."""
+        from .effects import rng_tag
+
+        return np.random.default_rng([int(self.seed) & 0xFFFFFFFF, rng_tag(effect)])
+
+    def note(self, effect: Any, figures: dict[str, Any]) -> None:
+        self.info.setdefault(id(effect), {}).update(figures)
 
 
 def sample_times(duration: float, imu_rate: float, mag_rate: float) -> tuple[Array, Array]:
@@ -216,21 +271,27 @@ def simulate(
         t_imu, t_mag, mi, mm,
         cal.gyro.inv().apply(mi.omega), cal.accel.inv().apply(mi.f), cal.mag.inv().apply(h_B), temp,
         cal, rng, imu_rate, mag_rate, {"gyro": GYRO_SPEC, "accel": ACCEL_SPEC, "mag": MAG_SPEC},
+        seed=seed, trajectory=traj, h_W=h_W,
     )
-    for eff in effects:
+    for eff in order_effects(effects):
         eff.apply(ctx)
+    sp = ctx.specs
     sig = {
-        "gyro": GYRO_SPEC.sigma(imu_rate) * noise * ctx.noise_scale["gyro"],
-        "accel": ACCEL_SPEC.sigma(imu_rate) * noise * ctx.noise_scale["accel"],
-        "mag": MAG_SPEC.sigma(mag_rate) * noise * ctx.noise_scale["mag"],
+        "gyro": sp["gyro"].sigma(imu_rate) * noise * ctx.noise_scale["gyro"],
+        "accel": sp["accel"].sigma(imu_rate) * noise * ctx.noise_scale["accel"],
+        "mag": sp["mag"].sigma(mag_rate) * noise * ctx.noise_scale["mag"],
     }
-    gyro = quantise(ctx.gyro + rng.normal(0, sig["gyro"], ctx.gyro.shape), GYRO_SPEC)
-    acc = quantise(ctx.acc + rng.normal(0, sig["accel"], ctx.acc.shape), ACCEL_SPEC)
-    mag = quantise(ctx.mag + rng.normal(0, sig["mag"], ctx.mag.shape), MAG_SPEC)
+    out = {
+        "gyro": quantise(ctx.gyro + rng.normal(0, sig["gyro"], ctx.gyro.shape), sp["gyro"]),
+        "accel": quantise(ctx.acc + rng.normal(0, sig["accel"], ctx.acc.shape), sp["accel"]),
+        "mag": quantise(ctx.mag + rng.normal(0, sig["mag"], ctx.mag.shape), sp["mag"]),
+    }
+    for hook in ctx.post:
+        hook(out)
     tmp = np.round((ctx.temp + rng.normal(0, 0.02, ctx.temp.shape)) * 100) / 100
-    data = ImuData(ctx.t_imu, gyro, acc, tmp, ctx.t_mag, mag, f"sim:{profile}:{seed}")
+    data = ImuData(ctx.t_imu, out["gyro"], out["accel"], tmp, ctx.t_mag, out["mag"], f"sim:{profile}:{seed}")
     tr = Truth(
         cal, profile, seed, imu_rate, mag_rate, noise=sig, segments=traj.annotations(),
-        effects=[e.describe() for e in effects], field_world=h_W.tolist(),
+        effects=[{**e.describe(), **ctx.info.get(id(e), {})} for e in effects], field_world=h_W.tolist(),
     )
     return Simulation(data, tr, traj)

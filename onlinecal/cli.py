@@ -180,9 +180,14 @@ def _replay_fleet(a: argparse.Namespace) -> int:
     """``replay --jobs N`` / ``--executor dask``: every log an independent unit (see onlinecal.fleet)."""
     import json
 
-    from .fleet import DaskMissing, SchedulerUnreachable, fleet_summary, run_fleet, summary_table
+    from .fleet import DaskMissing, SchedulerUnreachable, fleet_summary, require_dask, run_fleet, summary_table
     from .progress import bar
 
+    if a.executor == "dask":
+        try:
+            require_dask()
+        except DaskMissing as e:
+            raise Unavailable(str(e)) from e
     if a.report or a.trace:
         raise UsageError("--report and --trace belong to a single replay; with --jobs/--executor every log is "
                          "replayed on its own and reported as one JSON line (--json OUT)")
@@ -253,6 +258,9 @@ def cmd_run(a: argparse.Namespace) -> int:
         print("still needed: " + "; ".join(res.missing_motion))
     if a.json:
         print(f"wrote {a.json}")
+    if res.apply_error:
+        print(f"onlinecal run: --apply: {res.apply_error}; nothing was set", file=sys.stderr)
+        return 1
     if res.applied is not None:
         bad = res.apply_failed
         print(f"applied {len(res.applied) - len(bad)} of {len(res.applied)} {res.apply_format} parameters "
@@ -278,8 +286,26 @@ def cmd_demo(a: argparse.Namespace) -> int:
 
 
 def cmd_diagnose(a: argparse.Namespace) -> int:
-    raise Unavailable("diagnose is not implemented in this version (model-discrepancy discovery is "
-                      "planned); no diagnosis was written")
+    from .diagnose import diagnose
+
+    logs = _read_logs(a.logs, a)
+    diag = diagnose(logs, g=a.gravity, seed=a.seed)
+    print(f"verdict: {diag.verdict}")
+    for f in diag.findings:
+        if f.significant:
+            print(f"  {f.effect} ({f.sensor}{'/' + f.axis if f.axis else ''}): score {f.score:.1f} nats — {f.evidence}")
+    for u in diag.untestable:
+        print(f"  not testable: {u}")
+    print(f"diagnose: {sum(d.n_imu for d in logs)} IMU samples in {diag.timing.get('total', 0):.1f} s")
+    if a.json:
+        diag.save(a.json)
+        print(f"wrote {a.json}")
+    if a.report:
+        from .diagnose.report import write_report
+
+        path = write_report(diag, Path(a.report))
+        print(f"wrote {path}")
+    return 0
 
 
 def cmd_export(a: argparse.Namespace) -> int:
@@ -407,10 +433,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("b")
     p.set_defaults(fn=cmd_compare)
 
-    p = sub.add_parser("diagnose", help="what the model gets wrong on this data (not yet available)")
+    p = sub.add_parser("diagnose", help="what the model gets wrong on this data, the cause, the extended model")
     p.add_argument("logs", nargs="+")
     p.add_argument("--json", default=None)
-    p.add_argument("--report", default=None)
+    p.add_argument("--report", default=None, help="directory for report.md and plots")
+    p.add_argument("--gravity", type=float, default=9.80665, help="local g, m/s^2")
+    p.add_argument("--seed", type=int, default=0, help="seed of the re-simulation's noise")
+    _add_scales(p)
     p.set_defaults(fn=cmd_diagnose)
 
     p = sub.add_parser("export", help="vehicle parameters (ArduPilot .parm, PX4/QGroundControl .params)")

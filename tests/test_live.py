@@ -146,6 +146,52 @@ def test_lossy_link_drop_reorder_duplicate(session: ImuData) -> None:
     assert st["duplicates"] == snd.result["duplicated"]
     assert st["dropped_late"] == 0  # reordering by at most 3 packets fits in the 32-packet window
     assert any("duplicate" in w for w in out.warnings)
+    # Loss counted from the time line: every sent sample missing between the first and last received.
+    i = match_sent(out, session)
+    assert st["lost"] == (i[-1] - i[0] + 1) - out.n_imu
+    # Every mag sample used has its true time: a change first seen right after a lost packet happened
+    # somewhere in the gap, so it is not used (mag_uncertain) rather than stamped late.
+    tm, mag = expected_mag(session)
+    j = np.searchsorted(tm, out.t_mag - 1e-7)
+    assert np.all(np.abs(tm[np.minimum(j, tm.size - 1)] - out.t_mag) <= 1e-6), "a mag sample is mistimed"
+    assert np.allclose(out.mag, mag[j], atol=1e-12, rtol=0)
+    assert st["mag_uncertain"] > 0 and out.n_mag + st["mag_uncertain"] <= tm.size
+
+
+def test_resume_from_position_continues_the_time_line(session: ImuData) -> None:
+    """A second source resumed from the first one's position emits only later samples, keeps the clock
+    start (duration_s counts from the first source's first sample) and the held mag triple."""
+    port1, port2 = free_port(), free_port()
+    a_part, b_part = session.slice_imu(0, 400), session.slice_imu(300, 900)  # b repeats 100 samples
+    src = LiveSource(f"udpin:127.0.0.1:{port1}", timeout_s=0.7)
+    snd = Sender(lambda stop: send_session(a_part, f"udpout:127.0.0.1:{port1}", rate_scale=0.05,
+                                           stop_event=stop))
+    try:
+        out_a, _ = consume(src)
+    finally:
+        snd.finish()
+        src.close()
+    pos = src.position()
+    assert pos is not None and pos["last_us"] == round(a_part.t_imu[-1] * 1e6)
+    t0 = float(session.t_imu[0])
+    src = LiveSource(f"udpin:127.0.0.1:{port2}", timeout_s=0.7, duration_s=7.0)
+    src.resume_from(pos)
+    snd = Sender(lambda stop: send_session(b_part, f"udpout:127.0.0.1:{port2}", rate_scale=0.05,
+                                           stop_event=stop))
+    try:
+        out_b, _ = consume(src)
+    finally:
+        snd.finish()
+        src.close()
+    # Only the samples after the position, up to 7 s after the *first* source's first sample.
+    want = session.t_imu[(session.t_imu > a_part.t_imu[-1]) & (session.t_imu <= t0 + 7.0 + 1e-9)]
+    assert np.allclose(out_b.t_imu, want, atol=1e-6, rtol=0)
+    assert src.stats["stop_reason"] == "duration" and src.stats["lost"] == 0
+    # The held mag carried over: the first mag sample of b is a real change, at its true time.
+    tm, _ = expected_mag(session)
+    assert out_b.n_mag and out_b.t_mag[0] == pytest.approx(tm[tm > a_part.t_imu[-1]][0], abs=1e-6)
+    with LiveSource(f"udpin:127.0.0.1:{free_port()}") as bad, pytest.raises(ValueError, match="position"):
+        bad.resume_from({"last_us": 1})
 
 
 def test_udp_reconnect_after_silence(session: ImuData) -> None:

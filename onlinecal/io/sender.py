@@ -2,8 +2,11 @@
 
 For testing ``onlinecal run --connect`` (and :class:`onlinecal.io.live.LiveSource`) without hardware. The
 sender behaves like an ArduPilot vehicle as far as the calibration link needs: a HEARTBEAT (quadrotor,
-ArduPilot) about once a second, one RAW_IMU per IMU sample, and a COMMAND_ACK for every COMMAND_LONG
-(ACCEPTED for MAV_CMD_SET_MESSAGE_INTERVAL, whose interval it then ignores: the session's own rate is sent).
+ArduPilot) about once a second, one RAW_IMU per IMU sample, a COMMAND_ACK for every COMMAND_LONG
+(ACCEPTED for MAV_CMD_SET_MESSAGE_INTERVAL, whose interval it then ignores: the session's own rate is sent),
+and the MAVLink parameter protocol on a parameter table: PARAM_SET stores the value as float32 and is
+answered by PARAM_VALUE (param_id up to 16 characters, MAV_PARAM_TYPE_REAL32), as are PARAM_REQUEST_READ
+and PARAM_REQUEST_LIST. Like ArduPilot, a strict table ignores PARAM_SET of names it does not have.
 
 RAW_IMU fields, ArduPilot's units: ``time_usec`` µs (= t_imu), acc milli-g, gyro milli-rad/s, mag
 milli-gauss, temperature centi-°C (0 means "not provided", so a real 0 °C is sent as 1), each rounded and
@@ -14,12 +17,13 @@ Link faults can be injected: a fraction of packets dropped, reordered (sent 1-3 
 twice (same bytes, same MAVLink sequence number, as a duplicating radio or router would).
 
 Command line: ``python -m onlinecal.io.sender LOG URL [--rate-scale R] [--drop F] [--reorder F]
-[--duplicate F] [--seed N]`` where LOG is a ``.csv``/``.tlog`` log or ``sim:PROFILE:SEED`` (a simulated
+[--duplicate F] [--seed N] [--linger S]`` where LOG is a ``.csv``/``.tlog`` log or ``sim:PROFILE:SEED`` (a simulated
 session) and URL a pymavlink connection string, for example ``udpout:127.0.0.1:14550``.
 """
 
 from __future__ import annotations
 
+import struct
 import threading
 import time
 from typing import Any
@@ -86,7 +90,8 @@ def fault_schedule(n: int, drop: float, reorder: float, duplicate: float,
 def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float = 0.0, reorder: float = 0.0,
                  duplicate: float = 0.0, seed: int = 0, heartbeat: bool = True,
                  stop_event: threading.Event | None = None, system_id: int = 1,
-                 wait_peer_s: float = 10.0) -> dict[str, Any]:
+                 wait_peer_s: float = 10.0, params: dict[str, float] | None = None, strict_params: bool = False,
+                 param_bytewise: bool = False, linger_s: float = 0.0) -> dict[str, Any]:
     """Stream ``data`` as RAW_IMU over the pymavlink link ``url``; return what was done.
 
     ``rate_scale``: wall seconds per second of data (0 as fast as possible, 1 real time, 0.1 ten times
@@ -96,16 +101,26 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     ``udpin:``/``tcpin:`` links first wait up to ``wait_peer_s`` s for the peer to send something (the
     sender cannot address it before); nothing is sent if it does not.
 
+    ``params``: the vehicle's parameter table (name → value), changed in place by PARAM_SET (a new dict
+    if None); ``strict_params``: PARAM_SET of a name not in the table is ignored (no echo), as ArduPilot
+    does. ``param_bytewise``: INT32 parameters travel as the int's bytes in the float (PX4's
+    PARAM_ENCODE_BYTEWISE; the table holds the int), otherwise as a float (ArduPilot's cast).
+    ``linger_s``: after the stream, stay on the link that long (heartbeats, commands, parameters)
+    or until ``stop_event``.
+
     Returns counts: ``sent`` (RAW_IMU packets written, duplicates included), ``samples``, ``dropped``,
     ``reordered``, ``duplicated``, ``commands`` (COMMAND_LONGs answered), ``interval_us`` (the last
-    interval asked for with SET_MESSAGE_INTERVAL, or None) and ``peer`` (False if no peer turned up).
+    interval asked for with SET_MESSAGE_INTERVAL, or None), ``peer`` (False if no peer turned up),
+    ``param_sets`` (PARAM_SETs received) and ``params`` (the table).
     Raises LogError if the link cannot be opened.
     """
     mavutil = mavutil_v2()
     mavlink = mavutil.mavlink
     rows = raw_imu_rows(data)
     order, stats = fault_schedule(rows.shape[0], drop, reorder, duplicate, np.random.default_rng(seed))
-    stats.update(sent=0, samples=int(rows.shape[0]), commands=0, interval_us=None, peer=True)
+    table: dict[str, float] = {} if params is None else params
+    stats.update(sent=0, samples=int(rows.shape[0]), commands=0, interval_us=None, peer=True, param_sets=0,
+                 params=table)
     stop = stop_event or threading.Event()
     try:
         conn = mavutil.mavlink_connection(url, source_system=system_id, source_component=1, retries=0)
@@ -113,8 +128,43 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
         raise LogError(url, f"cannot open connection: {e}") from None
     got_any = False
 
+    int_params: set[str] = set()
+
+    def param_value(name: str) -> None:
+        names = list(table)
+        value, typ = table[name], mavlink.MAV_PARAM_TYPE_REAL32
+        if name in int_params:
+            typ = mavlink.MAV_PARAM_TYPE_INT32
+            if param_bytewise:
+                value = float(struct.unpack("<f", struct.pack("<i", int(value)))[0])
+        conn.mav.param_value_send(name.encode("ascii", "replace"), value, typ, len(names), names.index(name))
+
+    def on_param(msg: Any) -> None:
+        """The parameter protocol: PARAM_SET → store float32, echo PARAM_VALUE; reads → PARAM_VALUE."""
+        typ = msg.get_type()
+        if typ == "PARAM_SET":
+            stats["param_sets"] += 1
+            name = msg.param_id
+            if strict_params and name not in table:
+                return
+            value = float(np.float32(msg.param_value))  # what a float32 parameter can hold
+            if msg.param_type == mavlink.MAV_PARAM_TYPE_INT32:
+                int_params.add(name)
+                value = float(struct.unpack("<i", struct.pack("<f", value))[0] if param_bytewise else int(value))
+            table[name] = value
+            param_value(name)
+        elif typ == "PARAM_REQUEST_READ":
+            names = list(table)
+            name = msg.param_id if msg.param_index < 0 else (
+                names[msg.param_index] if msg.param_index < len(names) else "")
+            if name in table:
+                param_value(name)
+        else:
+            for name in list(table):
+                param_value(name)
+
     def poll() -> None:
-        """Answer what the ground station sent (COMMAND_LONG → COMMAND_ACK)."""
+        """Answer what the ground station sent (COMMAND_LONG → COMMAND_ACK, parameter messages)."""
         nonlocal got_any
         while True:
             try:
@@ -124,7 +174,12 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
             if msg is None:
                 return
             got_any = True
-            if msg.get_type() != "COMMAND_LONG" or msg.target_system not in (0, system_id):
+            typ = msg.get_type()
+            if typ in ("PARAM_SET", "PARAM_REQUEST_READ", "PARAM_REQUEST_LIST"):
+                if msg.target_system in (0, system_id):
+                    on_param(msg)
+                continue
+            if typ != "COMMAND_LONG" or msg.target_system not in (0, system_id):
                 continue
             ok = msg.command == MAV_CMD_SET_MESSAGE_INTERVAL
             if ok:
@@ -178,6 +233,13 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
             stats["sent"] += copies
             if stats["sent"] % 16 < copies:
                 poll()
+        linger_end = time.monotonic() + linger_s
+        while not stop.is_set() and time.monotonic() < linger_end:
+            if heartbeat and time.monotonic() >= next_hb_wall:
+                send_heartbeat()
+                next_hb_wall = time.monotonic() + 1.0
+            conn.select(0.05)
+            poll()
         poll()  # read what is pending: closing a TCP socket with unread input resets the connection
     finally:
         conn.close()
@@ -215,15 +277,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reorder", type=float, default=0.0, help="fraction of packets sent 1-3 packets late")
     p.add_argument("--duplicate", type=float, default=0.0, help="fraction of packets sent twice")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--linger", type=float, default=0.0,
+                   help="s to stay on the link after the stream (heartbeats, commands, PARAM_SET)")
     a = p.parse_args(argv)
     try:
         data = _load(a.log)
-        stats = send_session(data, a.url, a.rate_scale, a.drop, a.reorder, a.duplicate, a.seed)
+        stats = send_session(data, a.url, a.rate_scale, a.drop, a.reorder, a.duplicate, a.seed, linger_s=a.linger)
     except LogError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
+    stats.pop("params")
     print(" ".join(f"{k}={v}" for k, v in stats.items()))
     return 0
 

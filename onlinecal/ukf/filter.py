@@ -1,23 +1,38 @@
 """The augmented-state UKF: attitude on the manifold plus every calibration term of the paper's model.
 
 Filter: the scaled unscented transform of Wan & van der Merwe (2000) (filterpy's ``MerweScaledSigmaPoints``
-and ``unscented_transform``), with the attitude kept as a nominal rotation plus a 3-vector error in the
-state (the error-state / manifold treatment of Crassidis & Markley's USQUE, 2003): sigma points are rotation
-vectors around the nominal, and after each update the mean error is folded into the nominal and reset to
-zero. The state layout is in :mod:`onlinecal.ukf.layout`, the block propagation in
+weights and ``unscented_transform``), with the attitude kept as a nominal rotation plus a 3-vector error in
+the state (the error-state / manifold treatment of Crassidis & Markley's USQUE, 2003): sigma points are
+rotation vectors around the nominal, and after each update the mean error is folded into the nominal and
+reset to zero. The state layout is in :mod:`onlinecal.ukf.layout`, the block propagation in
 :mod:`onlinecal.ukf.propagate`.
 
 One filter step covers a block of IMU samples (``UKFConfig.block_s``, 0.1 s by default): all sigma points
 are propagated through the whole block at once, then one joint update with the block-mean accelerometer
-(weighted by how quasi-static the block is, chi-square gated) and the block-mean magnetometer (at its own
-sample times) follows.
+(weighted by how quasi-static the block is, chi-square gated), the block-mean magnetometer (at its own
+sample times) and, at rest, the zero-rate reading of the gyro.
+
+Sigma points come from a Cholesky factor taken with the attitude and gyro states first: the offsets of
+the other states' rows then leave the attitude and gyro terms at the mean, so those sigma points share
+the mean's attitude history — computed once instead of once per point (31 attitude integrations per
+block instead of 81; exact, not an approximation: any square root gives a valid sigma-point set).
+
+Beyond the paper's 36 terms the state can carry:
+
+* hold offsets (``hold.<sensor>.<axis>``): when a log's values sit on a lattice coarser than the
+  sensor's own ADC (a format that re-quantises, e.g. RAW_IMU in mrad/s and milli-gauss), the mean of a
+  *held* reading is off by a quantisation error that averaging does not remove; the state carries it
+  (gyro: one offset for the zero-rate reading, shared by every rest; accel, mag: one per hold);
+* model extensions (``UKFConfig.extra_states``): a bias that follows a regressor, o(t) = o + K·r(t),
+  with r = T − T0 (``temperature_bias:gyro``, ``temperature_bias:accel``) or r = f, the specific force
+  (``g_sensitivity``, a diagonal gyro g-sensitivity), reported in ``result().extensions``.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -40,6 +55,7 @@ from .layout import (
     correction,
     field_world,
     index,
+    model_pair,
     rodrigues,
     rot_log,
 )
@@ -47,7 +63,15 @@ from .propagate import predict_raw, propagate_block
 
 Array = NDArray[np.float64]
 
-STATE_SCHEMA = "onlinecal.ukf-state/1"
+STATE_SCHEMA = "onlinecal.ukf-state/2"
+SPECS = {"gyro": GYRO_SPEC, "accel": ACCEL_SPEC, "mag": MAG_SPEC}
+# model extensions: name → (sensor whose bias moves, prior σ of K per axis, unit of K)
+EXTENSIONS = {
+    "temperature_bias:gyro": ("gyro", 1e-3, "rad/s/°C"),
+    "temperature_bias:accel": ("accel", 1e-2, "m/s²/°C"),
+    "g_sensitivity": ("gyro", 5e-4, "rad/s per m/s²"),
+}
+MIN_SAMPLES_DETECT = 64  # IMU samples at the start of a log used for the rate and the value lattice
 
 
 @dataclass
@@ -80,11 +104,10 @@ class UKFConfig:
     # random walk on the calibration states per √s: the white-noise density of the sensor times this
     # (bias) and the density relative to full scale times this (dimensionless terms)
     rw_factor: float = 1e-3
-    # quasi-static weighting of the accelerometer (adaptive R): σ² += (k·||a|−g|)² + (r ω²)²
+    # quasi-static weighting of the accelerometer (adaptive R): σ² += (k·dev)² + (r ω²)², dev the part of
+    # ||a|−g| beyond 3σ of what noise and the calibration's own uncertainty explain
     acc_dev_gain: float = 5.0
     acc_lever_m: float = 0.005
-    static_rate: float = 0.1  # rad/s: below this and ...
-    static_dev: float = 0.1  # m/s²: ... below this the block counts as quasi-static
     acc_gate_p: float = 0.999  # chi-square gate on the accel NIS (3 dof)
     mag_gate_p: float = 0.9999  # chi-square gate on the mag NIS: soft (R inflated), never dropped
     nis_window: int = 100  # updates per NIS window
@@ -92,7 +115,7 @@ class UKFConfig:
     divergence_factor: float = 5.0  # window mean NIS > factor × upper band ...
     divergence_windows: int = 3  # ... for this many windows in a row → divergence
     mag_fit_min_samples: int = 100
-    mag_fit_min_spread: float = 0.05  # smallest eigenvalue of the scatter of unit field directions
+    mag_fit_min_spread: float = 0.1  # smallest eigenvalue of the scatter of unit field directions (1/3: a sphere)
     mag_fit_max_centre_sigma: float = 0.01  # LS σ of the sphere's centre, relative to its radius
     mag_buffer_max: int = 2000
     max_gap_s: float = 0.5  # IMU gap that restarts the attitude
@@ -101,20 +124,40 @@ class UKFConfig:
     rest_rate_sigma: float = 5e-5  # rad/s, allowance for micro-motion in a rest (zero-rate update)
     trace_every_s: float = 1.0
     trace_max_rows: int = 100_000
-    gauge_sensor: str | None = "auto"  # whose alpha defines B (held at its prior); None: all free
+    max_events: int = 1000  # events kept (oldest dropped beyond); the count of all is in nis_summary
+    # whose alpha defines B (held at its prior as a consider state); "auto": the gyro when ``init`` is a
+    # batch result whose gyro came from its rotation phases (the batch's own definition of B), else the
+    # init sensor with the tightest alpha σ, else the accelerometer; None: all free
+    gauge_sensor: str | None = "auto"
+    # which terms of the gauge sensor are held: "alpha", "alpha+xi", or "auto" ("alpha+xi" for a
+    # phase-based batch gyro — the phases fix all three axes of B in the gyro, not only a rotation)
+    gauge_terms: str = "auto"
     excited_ratio: float = 0.5  # posterior σ / prior σ below this: "excited"
+    quant_hold: bool = True  # model the mean error of held readings on a re-quantised lattice
+    # measured noise (third differences of the raw samples) above this multiple of the spec's variance
+    # (smoothed over noise_tau_blocks blocks) → the sensor's noise is scaled up and an event raised;
+    # back below noise_low → back to the spec
+    noise_high: float = 4.0
+    noise_low: float = 2.0
+    noise_tau_blocks: float = 10.0
+    # saturation: a reading repeated rail_run times in a row, of magnitude at least rail_min (rad/s,
+    # m/s²), is the ADC rail; from then on readings at the rail are clipped
+    rail_min: dict[str, float] = field(default_factory=lambda: {"gyro": 1.0, "accel": 14.7})
+    rail_run: int = 40
+    extra_states: tuple[str, ...] = ()  # model extensions, keys of EXTENSIONS
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        d["extra_states"] = list(self.extra_states)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> UKFConfig:
+        known = {f.name for f in fields(cls)}
+        d = {k: v for k, v in d.items() if k in known}  # settings dropped since a state was saved
+        if "extra_states" in d:
+            d["extra_states"] = tuple(d["extra_states"])
         return cls(**d)
-
-
-def _sqrt_upper(P: Array) -> Array:
-    """Matrix U with Uᵀ U = P (rows are the sigma-point offsets filterpy expects)."""
-    return np.linalg.cholesky(P).T
 
 
 def _given_sigma(cal: SensorCalibration) -> Array:
@@ -125,6 +168,52 @@ def _given_sigma(cal: SensorCalibration) -> Array:
         out.append(v if v.shape == (3,) else np.full(3, np.nan))
     sig = np.concatenate(out)
     return np.where(np.isfinite(sig) & (sig > 0), sig, np.nan)
+
+
+def value_lattice(v: Array) -> float:
+    """The quantum q of a sensor's values when every value is an integer multiple of it, else 0.
+
+    v (N, 3) raw readings. q is the smallest step between distinct values on any axis; it counts only
+    if all values are multiples of it to 1e-6 (floats from integer counts times a unit factor are).
+    """
+    v = v[np.all(np.isfinite(v), axis=1)]
+    if v.shape[0] < 8:
+        return 0.0
+    steps = np.concatenate([np.diff(np.unique(v[:, k])) for k in range(3)])
+    steps = steps[steps > 0]
+    if not steps.size:
+        return 0.0
+    q = float(steps.min())
+    if q <= 1e-9 * max(float(np.abs(v).max()), 1e-300):
+        return 0.0
+    k = v / q
+    return q if float(np.max(np.abs(k - np.round(k)))) < 1e-6 else 0.0
+
+
+def hold_sigma(q: float, sigma_n: float) -> float:
+    """σ of the error of the mean of a held reading re-quantised to q (no averaging removes it).
+
+    A value already quantised by the sensor's ADC and then rounded to a coarser format lattice q is off
+    on average by a function of where it sits on the two lattices; white noise σ_n dithers it only
+    partly. Bound used: q/√12 · exp(−σ_n/q) (q/√12: no dither). Simulated for sensor lattices of
+    0.24–0.53 q and σ_n = 0.3–1.5 q, the rms error stays below this bound (e.g. 0.13 q at σ_n = q/2
+    against 0.18 q; ``tests/test_ukf.py::test_hold_sigma_bounds_double_quantisation``).
+    """
+    if q <= 0:
+        return 0.0
+    return q / math.sqrt(12.0) * math.exp(-sigma_n / q)
+
+
+def _third_diff_var(v: Array) -> float:
+    """Per-sample white-noise variance from the third differences of v (N, 3): median |Δ³v|² / (3·20·0.789).
+
+    Δ³ of white noise has variance 20σ² per axis; a smooth motion's own third difference (rate‴·Δt³) is
+    far below it at IMU rates. The median makes it robust to a jerk; 0.789 = median of χ²(3) / 3.
+    """
+    if v.shape[0] < 6:
+        return math.nan
+    d3 = (v[3:] - v[:-3]) - 3 * (v[2:-1] - v[1:-2])
+    return float(np.median(np.einsum("ij,ij->i", d3, d3))) / (3 * 20.0 * 0.7888)
 
 
 class OnlineCalibrator:
@@ -144,51 +233,146 @@ class OnlineCalibrator:
         self.config = config or UKFConfig()
         self.init = init
         c = self.config
-        self.points = MerweScaledSigmaPoints(N_STATE, c.sp_alpha, c.sp_beta, c.sp_kappa,
-                                             sqrt_method=_sqrt_upper)
+        for e in c.extra_states:
+            if e not in EXTENSIONS:
+                raise ValueError(f"unknown extra state {e!r} (known: {', '.join(EXTENSIONS)})")
         self.events: list[dict[str, Any]] = []
+        self._n_events = 0
         self._gates = {"accel": float(chi2.ppf(c.acc_gate_p, 3)), "mag": float(chi2.ppf(c.mag_gate_p, 3))}
-        self._consider = self._consider_mask()
         self._trace: deque[dict[str, float]] = deque(maxlen=c.trace_max_rows)
         self._rate: float | None = None
         self._L = 0
         self._pend_t = np.zeros(0)
         self._pend_w = np.zeros((0, 3))
         self._pend_a = np.zeros((0, 3))
+        self._pend_T = np.zeros(0)
         self._pend_tm = np.zeros(0)
         self._pend_m = np.zeros((0, 3))
         self._t_last: float | None = None
         self._w_last = np.zeros(3)
+        self._T_last = math.nan
         self._att_ok = False
         self._next_trace = -math.inf
         self._n_imu = 0
         self._n_blocks = 0
         self._nis: dict[str, dict[str, Any]] = {}
+        # per log: value lattice of each sensor (0: none) and whether it is a re-quantisation
+        self._q: dict[str, float] | None = None
+        self._q_mag_buf: list[list[float]] = []
+        self._noise_ratio = {s: 1.0 for s in SENSORS}
+        self._noise_high = {s: False for s in SENSORS}
+        self._rail: dict[str, list[float]] = {}
+        self._run: dict[str, list[tuple[float, int]]] = {}
+        self._clip_on = {s: False for s in SENSORS}
+        self._T0: float | None = None
         self._reset_calibration()
 
+    # ------------------------------------------------------------------------------------------
+    # state layout
+    def _build_layout(self, holds: tuple[str, ...] = ()) -> None:
+        """Names of the state (the 40 of :mod:`.layout`, then extensions, then hold offsets), the slices
+        of the extras, the sigma-point weights and the Cholesky order (attitude-relevant states first)."""
+        c = self.config
+        names = list(NAMES)
+        self._ext_slice: dict[str, slice] = {}
+        for e in c.extra_states:
+            s0 = len(names)
+            names += [f"ext.{e}.{a}" for a in AXES]
+            self._ext_slice[e] = slice(s0, s0 + 3)
+        self._hold_slice: dict[str, slice] = {}
+        for s in holds:
+            s0 = len(names)
+            names += [f"hold.{s}.{a}" for a in AXES]
+            self._hold_slice[s] = slice(s0, s0 + 3)
+        self.names = names
+        n = len(names)
+        self.points = MerweScaledSigmaPoints(n, c.sp_alpha, c.sp_beta, c.sp_kappa)
+        self._Wm, self._Wc = self.points.Wm, self.points.Wc
+        dyn = np.zeros(n, bool)
+        dyn[ATT] = True
+        dyn[SENSOR_SLICE["gyro"]] = True
+        for e, sl in self._ext_slice.items():
+            if EXTENSIONS[e][0] == "gyro":
+                dyn[sl] = True
+        if "gyro" in self._hold_slice:
+            dyn[self._hold_slice["gyro"]] = True  # a held gyro reading is integrated with its offset
+        self._perm = np.concatenate([np.flatnonzero(dyn), np.flatnonzero(~dyn)])
+        nd = int(dyn.sum())
+        self._dyn_pts = np.concatenate([[0], np.arange(1, nd + 1), np.arange(n + 1, n + nd + 1)])
+        self._consider = self._consider_mask()
+        self._q_unit: dict[str, Array] = {}
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    def _add_hold(self, sensor: str, sigma: float) -> None:
+        """Append the 3 hold-offset states of ``sensor`` (0 ± sigma), or reset them if present."""
+        if sensor not in self._hold_slice:
+            holds = tuple(self._hold_slice) + (sensor,)
+            n0 = self.n
+            self._build_layout(holds)
+            n1 = self.n
+            x = np.zeros(n1)
+            x[:n0] = self.x
+            P = np.zeros((n1, n1))
+            P[:n0, :n0] = self.P
+            self.x, self.P = x, P
+            self.prior_x = np.concatenate([self.prior_x, np.zeros(n1 - n0)])
+            self.prior_sigma = np.concatenate([self.prior_sigma, np.zeros(n1 - n0)])
+        self._hold_sigma[sensor] = sigma
+        self._reset_hold(sensor)
+
+    def _reset_hold(self, sensor: str) -> None:
+        sl = self._hold_slice[sensor]
+        self.x[sl] = 0.0
+        self.P[sl, :] = 0.0
+        self.P[:, sl] = 0.0
+        self.P[sl, sl] = np.eye(3) * self._hold_sigma[sensor] ** 2
+        self.prior_sigma[sl] = self._hold_sigma[sensor]
+
     def _consider_mask(self) -> Array:
-        """States held at their prior (Schmidt–Kalman consider states): the gauge sensor's alpha.
+        """States held at their prior (Schmidt–Kalman consider states): the gauge sensor's alpha (and xi).
 
         A common rotation of the body frame (every sensor's T_R turned by the same Q, the attitude by Qᵀ)
         leaves every measurement unchanged, so nothing in the data fixes it: B is defined by the prior.
         Left free, a filter linearised at moving estimates gains spurious information along it and drifts
         (seen in cold starts: all three alphas off by the same degrees at 40σ). Holding one sensor's
         alpha at its prior (with its prior σ, as a consider parameter) pins B to that sensor's frame as
-        given by ``init`` (the batch's B) or to the sensor itself on a cold start.
+        given by ``init`` (the batch's B) or to the sensor itself on a cold start. The batch defines B by
+        the platform's three rotation axes as the gyro measured them (its phases): that fixes the gyro's
+        alpha *and* xi in B, so for such an init both are held.
         """
-        mask = np.zeros(N_STATE, bool)
+        mask = np.zeros(len(self.names), bool)
         g = self.gauge
         if g:
-            mask[index(g, "alpha")] = True
+            for p in self._gauge_terms():
+                mask[index(g, p)] = True
         return mask
+
+    def _batch_gyro_from_phases(self) -> bool:
+        try:
+            m = self.init.meta["batch"]["steps"]["gyro"]["figures"]["method"]  # type: ignore[union-attr]
+        except (AttributeError, KeyError, TypeError):
+            return False
+        return isinstance(m, str) and m.startswith("phases") and self.init.gyro is not None  # type: ignore[union-attr]
+
+    def _gauge_terms(self) -> tuple[str, ...]:
+        t = self.config.gauge_terms
+        if t == "auto":
+            return ("alpha", "xi") if self.gauge == "gyro" and self._batch_gyro_from_phases() else ("alpha",)
+        return tuple(t.split("+"))
 
     @property
     def gauge(self) -> str | None:
-        """The sensor whose alpha defines B: ``config.gauge_sensor``, or for "auto" the init sensor with the
-        tightest alpha σ (the one that carries B, e.g. the batch's mag), else the accelerometer."""
+        """The sensor whose alpha defines B: ``config.gauge_sensor``; for "auto" the gyro of a batch init
+        whose gyro came from its phases (the batch's B), else the init sensor with the tightest alpha σ,
+        else the accelerometer."""
         g = self.config.gauge_sensor
         if g != "auto":
             return g
+        if self._batch_gyro_from_phases():
+            return "gyro"
         best, best_s = "accel", math.inf
         if self.init is not None:
             for s in SENSORS:
@@ -203,7 +387,7 @@ class OnlineCalibrator:
     # ------------------------------------------------------------------------------------------
     # priors
     def _prior(self) -> tuple[Array, Array]:
-        """Prior mean and σ of the whole state from ``init`` (or cold). Attitude entries are filled later."""
+        """Prior mean and σ of the 40 base states from ``init`` (or cold). Attitude entries are filled later."""
         c = self.config
         x = np.zeros(N_STATE)
         sig = np.zeros(N_STATE)
@@ -221,14 +405,27 @@ class OnlineCalibrator:
                 if s == "mag":
                     cold_v[:3] *= float(1.0 / np.mean(cal.scale))  # mag bias σ relative to the raw field
                     cold_v[3:6] *= float(np.mean(cal.scale))
-                sig[sl] = np.where(np.isfinite(given), given * c.init_inflation, cold_v)
+                infl = np.full(12, c.init_inflation)
+                if s == self.gauge:
+                    # consider states are never updated from the data: no double use to allow for
+                    for p in self._gauge_terms():
+                        infl[PARAMS.index(p) * 3 : PARAMS.index(p) * 3 + 3] = 1.0
+                sig[sl] = np.where(np.isfinite(given), given * infl, cold_v)
         x[DIP] = math.radians(60.0)
         sig[DIP] = math.radians(30.0)
         return x, sig
 
     def _reset_calibration(self) -> None:
         """(Re)start every calibration state from the prior; the attitude restarts on the next block."""
-        self.x, sig = self._prior()
+        self._build_layout()
+        self._hold_sigma: dict[str, float] = {}
+        x0, sig0 = self._prior()
+        n = self.n
+        self.x = np.zeros(n)
+        sig = np.zeros(n)
+        self.x[:N_STATE], sig[:N_STATE] = x0, sig0
+        for e, sl in self._ext_slice.items():
+            sig[sl] = EXTENSIONS[e][1]
         self.prior_sigma = sig.copy()
         self.prior_x = self.x.copy()
         sig[ATT] = 0.1
@@ -245,47 +442,142 @@ class OnlineCalibrator:
         self._align_yaw_next = False
         self._prev_means: tuple[Any, Any, Any] | None = None
         self._rest_count = 0
+        self._still = False
+        self._held = {"accel": False, "mag": False}
         self._nis = {s: {"sum": 0.0, "n": 0, "windows": [], "bad_run": 0, "rejected": 0, "updates": 0}
                      for s in ("accel", "mag")}
+        if self._q is not None:
+            self._apply_lattice(tuple(k for k in SENSORS if k in self._q))
 
     # ------------------------------------------------------------------------------------------
     # noise
-    def _noise(self) -> dict[str, float]:
-        """Per-sample σ of the raw readings from the specs (white noise + quantisation)."""
+    def _spec_noise(self) -> dict[str, float]:
+        """Per-sample σ of the raw readings from the specs (white noise + the sensor's own quantisation)."""
         r = self._rate or 100.0
-        mag_unit = self._mag_unit()
-        return {
+        key = (r, float(self.x[SENSOR_SLICE["mag"].start + 3 : SENSOR_SLICE["mag"].start + 6].sum()))
+        if getattr(self, "_spec_key", None) == key:
+            return dict(self._spec_cache)
+        self._spec_key = key
+        self._spec_cache = {
             "gyro": math.hypot(GYRO_SPEC.sigma(r), GYRO_SPEC.lsb / math.sqrt(12)),
             "accel": math.hypot(ACCEL_SPEC.sigma(r), ACCEL_SPEC.lsb / math.sqrt(12)),
             # relative to the field, then in the raw unit (the reader may deliver gauss or milli-gauss)
-            "mag": math.hypot(MAG_SPEC.sigma(50.0), MAG_SPEC.lsb / math.sqrt(12)) / FIELD_GAUSS * mag_unit,
+            "mag": math.hypot(MAG_SPEC.sigma(50.0), MAG_SPEC.lsb / math.sqrt(12)) / FIELD_GAUSS * self._mag_unit(),
         }
+        return dict(self._spec_cache)
+
+    def _noise(self) -> dict[str, float]:
+        """Per-sample σ used by the filter: the spec's, the format's re-quantisation (q²/12, white part)
+        and, where the measured noise is far above the spec, scaled to the measured level."""
+        n = self._spec_noise()
+        q = self._q or {}
+        for s in SENSORS:
+            if q.get(s + "_requant"):
+                n[s] = math.hypot(n[s], q[s] / math.sqrt(12.0))
+            if self._noise_high[s]:
+                n[s] *= math.sqrt(self._noise_ratio[s])
+        return n
 
     def _mag_unit(self) -> float:
         """Raw magnitude of the unit field: 1 / mean mag scale."""
         return float(1.0 / np.mean(self.x[SENSOR_SLICE["mag"]][3:6]))
 
     def _process_noise(self, dt: float, L: int) -> Array:
-        """Q for one block of ``L`` samples lasting ``dt`` s.
+        """Diagonal of Q for one block of ``L`` samples lasting ``dt`` s.
 
         Attitude: angle random walk of the gyro, σ_gyr·Δt per sample, L samples (rad²), in every axis.
         Calibration: random walk, density × ``rw_factor`` per √s (bias), density/full-scale × ``rw_factor``
-        (dimensionless terms) — a slow drift allowance set from the specs, not tuned per log.
+        (dimensionless terms) — a slow drift allowance set from the specs, not tuned per log. Extensions:
+        their prior σ × ``rw_factor`` per √s. Hold offsets: none (a held value's error is constant).
         """
-        c = self.config
         r = self._rate or 100.0
-        n = self._noise()
-        q = np.zeros(N_STATE)
-        q[ATT] = L * (n["gyro"] / r) ** 2
-        specs = {"gyro": GYRO_SPEC, "accel": ACCEL_SPEC, "mag": MAG_SPEC}
-        for s, spec in specs.items():
+        q = self._cal_rw().copy() * dt
+        q[ATT] = L * (self._noise()["gyro"] / r) ** 2
+        return q
+
+    def _cal_rw(self) -> Array:
+        """Random-walk variance per second of every state (attitude entries 0)."""
+        key = (self.n, round(self._mag_unit(), 6))
+        if getattr(self, "_rw_key", None) == key:
+            return self._rw_cache
+        c = self.config
+        q = np.zeros(self.n)
+        for s, spec in SPECS.items():
             dens = spec.density if spec.density > 0 else spec.sigma(50.0) / math.sqrt(25.0)
             unit = self._mag_unit() / FIELD_GAUSS if s == "mag" else 1.0
             sl = SENSOR_SLICE[s]
-            q[sl.start : sl.start + 3] = (dens * unit * c.rw_factor) ** 2 * dt
-            q[sl.start + 3 : sl.stop] = (dens / spec.full_scale * c.rw_factor) ** 2 * dt
-        q[DIP] = (1e-6) ** 2 * dt
-        return np.diag(q)
+            q[sl.start : sl.start + 3] = (dens * unit * c.rw_factor) ** 2
+            q[sl.start + 3 : sl.stop] = (dens / spec.full_scale * c.rw_factor) ** 2
+        q[DIP] = (1e-6) ** 2
+        for e, sl in self._ext_slice.items():
+            q[sl] = (EXTENSIONS[e][1] * c.rw_factor) ** 2
+        self._rw_key, self._rw_cache = key, q
+        return q
+
+    def _update_noise_level(self, sensor: str, v: Array, t: float) -> None:
+        """Measured per-sample noise against the spec (third differences, smoothed); raises the sensor's
+        noise and says so when it is far above, and returns to the spec when it comes back."""
+        var = _third_diff_var(v)
+        if not math.isfinite(var):
+            return
+        c = self.config
+        spec = self._spec_noise()[sensor]
+        q = self._q or {}
+        if q.get(sensor + "_requant"):
+            spec = math.hypot(spec, q[sensor] / math.sqrt(12.0))
+        a = 1.0 / c.noise_tau_blocks
+        r = (1 - a) * self._noise_ratio[sensor] + a * var / spec**2
+        self._noise_ratio[sensor] = r
+        if not self._noise_high[sensor] and r > c.noise_high:
+            self._noise_high[sensor] = True
+            self._event("noise_high", f"{sensor} noise {math.sqrt(r):.2g}× its spec: its weight lowered", t)
+        elif self._noise_high[sensor] and r < c.noise_low:
+            self._noise_high[sensor] = False
+            self._event("noise_normal", f"{sensor} noise back to {math.sqrt(r):.2g}× its spec", t)
+
+    # ------------------------------------------------------------------------------------------
+    # quantisation
+    def _detect_lattice(self, w: Array, a: Array, m: Array) -> None:
+        """Value lattice of gyro, accel (and mag, once it has samples) at the start of a log."""
+        self._q = {"gyro": value_lattice(w), "accel": value_lattice(a)}
+        self._q_mag_buf = m.tolist()
+        if m.shape[0] >= 16:
+            self._q["mag"] = value_lattice(m)
+        self._apply_lattice(tuple(s for s in SENSORS if s in self._q))
+        if "mag" in self._q:
+            self._q_mag_buf = []
+
+    def _apply_lattice(self, sensors: tuple[str, ...]) -> None:
+        """A lattice coarser than the sensor's own ADC (spec lsb) is a re-quantisation by the format:
+        its q²/12 joins the white noise and, with ``quant_hold``, the held-reading offsets join the state."""
+        q = self._q
+        assert q is not None
+        r = self._rate or 100.0
+        unit = self._mag_unit_raw()
+        own = {"gyro": GYRO_SPEC.lsb, "accel": ACCEL_SPEC.lsb, "mag": MAG_SPEC.lsb / FIELD_GAUSS * unit}
+        white = {"gyro": GYRO_SPEC.sigma(r), "accel": ACCEL_SPEC.sigma(r),
+                 "mag": MAG_SPEC.sigma(50.0) / FIELD_GAUSS * unit}
+        for s in sensors:
+            req = q[s] > 1.5 * own[s]
+            q[s + "_requant"] = bool(req)
+            if req and self.config.quant_hold:
+                first = s not in self._hold_slice
+                hs = hold_sigma(q[s], white[s])
+                self._add_hold(s, hs)
+                if first and self.init is not None and self.init.sensor(s) is not None:
+                    # a bias found from held readings through this format carries the same hold error,
+                    # which the init's σ (fitted as if the rounding averaged out) does not include
+                    b = index(s, "bias")
+                    self.P[b, b] += np.eye(3) * hs**2
+                    self.prior_sigma[b] = np.hypot(self.prior_sigma[b], hs)
+
+    def _mag_unit_raw(self) -> float:
+        """Raw field magnitude: from the mag scale once known, else the first raw samples' norm."""
+        if self.mag_enabled:
+            return self._mag_unit()
+        if self._q_mag_buf:
+            return float(np.median(np.linalg.norm(np.asarray(self._q_mag_buf), axis=1)))
+        return 1.0
 
     # ------------------------------------------------------------------------------------------
     # streaming
@@ -295,6 +587,7 @@ class OnlineCalibrator:
             self._pend_t = np.concatenate([self._pend_t, block.t_imu])
             self._pend_w = np.concatenate([self._pend_w, block.gyro.reshape(-1, 3)])
             self._pend_a = np.concatenate([self._pend_a, block.acc.reshape(-1, 3)])
+            self._pend_T = np.concatenate([self._pend_T, np.asarray(block.temp, float).reshape(-1)])
         if block.n_mag:
             self._pend_tm = np.concatenate([self._pend_tm, block.t_mag])
             self._pend_m = np.concatenate([self._pend_m, block.mag.reshape(-1, 3)])
@@ -306,22 +599,32 @@ class OnlineCalibrator:
         self._pend_t = np.zeros(0)
         self._pend_w = np.zeros((0, 3))
         self._pend_a = np.zeros((0, 3))
+        self._pend_T = np.zeros(0)
         self._pend_tm = np.zeros(0)
         self._pend_m = np.zeros((0, 3))
         self._t_last = None
         self._att_ok = False
+        self._q = None  # a new log may come in another format: its lattice is detected again
+        self._prev_means = None
+        self._rest_count = 0
 
     def flush(self) -> None:
         """Process the IMU samples still buffered as one (short) block."""
         self._process(final=True)
 
     def _process(self, final: bool = False) -> None:
-        t, w, a = self._pend_t, self._pend_w, self._pend_a
-        if self._rate is None:
-            if t.size < 10 and not (final and t.size >= 2):
+        t, w, a, T = self._pend_t, self._pend_w, self._pend_a, self._pend_T
+        if self._q is None:
+            # the rate and the value lattice come from the log's first samples (a fixed count, so the
+            # result does not depend on how the log is cut into feed() calls)
+            k = MIN_SAMPLES_DETECT
+            if t.size < k and not (final and t.size >= 2):
                 return
-            self._rate = float(1.0 / np.median(np.diff(t)))
-            self._L = max(1, int(round(self.config.block_s * self._rate)))
+            if self._rate is None:
+                self._rate = float(1.0 / np.median(np.diff(t[:k])))
+                self._L = max(1, int(round(self.config.block_s * self._rate)))
+            j = int(np.searchsorted(self._pend_tm, t[min(k, t.size) - 1], side="right"))
+            self._detect_lattice(w[:k], a[:k], self._pend_m[:j])
         L = self._L
         tm, mm = self._pend_tm, self._pend_m
         i = 0
@@ -332,9 +635,14 @@ class OnlineCalibrator:
             tb = t[i:j]
             t0 = self._t_last if self._att_ok and self._t_last is not None else None
             gaps = np.diff(tb) > max_gap
-            if t0 is not None and tb[0] - t0 > max_gap:
-                self._event("gap", f"IMU gap of {tb[0] - t0:.3f} s: attitude restarted", tb[0])
+            if self._t_last is not None and tb[0] - self._t_last > max_gap:
+                gap = float(tb[0] - self._t_last)
+                self._event("gap", f"IMU gap of {gap:.3f} s: attitude restarted, calibration drift "
+                                   "allowance for the gap added", tb[0])
+                self.P[np.diag_indices(self.n)] += self._cal_rw() * gap
                 self._att_ok = False
+                self._prev_means = None
+                self._rest_count = 0
                 t0 = None
             if gaps.any():
                 j = i + int(np.argmax(gaps)) + 1  # process up to the gap
@@ -346,16 +654,65 @@ class OnlineCalibrator:
                 lo = int(np.searchsorted(tm, t0, side="right"))
             tmb, mb = tm[lo:k], mm[lo:k]
             tm, mm = tm[k:], mm[k:]
-            if t0 is None:
+            if self._q is not None and "mag" not in self._q and mb.shape[0]:
+                self._q_mag_buf += mb.tolist()
+                if len(self._q_mag_buf) >= 16:
+                    self._q["mag"] = value_lattice(np.asarray(self._q_mag_buf))
+                    self._apply_lattice(("mag",))
+                    self._q_mag_buf = []
+            clip = self._clipped(w[i:j], a[i:j], float(tb[-1]))
+            if clip["gyro"]:
+                # a clipped gyro turns the attitude by less than the body did: nothing of this block is
+                # used, and the attitude restarts from the accel (and mag) once the gyro is off the rail
+                self._att_ok = False
+            elif t0 is None:
                 self._init_attitude(tb, w[i:j], a[i:j], tmb, mb)
             else:
-                self._step(tb, w[i:j], a[i:j], tmb, mb)
+                self._step(tb, w[i:j], a[i:j], T[i:j], tmb, mb, clip)
             self._t_last = float(tb[-1])
             self._w_last = w[j - 1].copy()
             self._n_imu += j - i
             i = j
-        self._pend_t, self._pend_w, self._pend_a = t[i:], w[i:], a[i:]
+        self._pend_t, self._pend_w, self._pend_a, self._pend_T = t[i:], w[i:], a[i:], T[i:]
         self._pend_tm, self._pend_m = tm, mm
+
+    def _clipped(self, w: Array, a: Array, t: float) -> dict[str, bool]:
+        """Which sensors read at their ADC rail in this block; an event at the start of every clipped
+        stretch. A rail is learnt from ``rail_run`` identical readings in a row (runs carry over block
+        boundaries) at a magnitude of at least ``rail_min``: noise makes a reading that is not clipped
+        change within a few samples. Once learnt, any reading at the rail counts as clipped."""
+        c = self.config
+        out = {"mag": False}
+        for s, v in (("gyro", w), ("accel", a)):
+            av = np.abs(v)
+            rail = self._rail.get(s)
+            hit = rail is not None and bool(np.any(av >= np.asarray(rail) * (1 - 1e-9)))
+            carry = self._run.get(s)
+            if float(av.max()) < c.rail_min[s]:
+                self._run.pop(s, None)
+            else:
+                new_carry = []
+                for k in range(3):
+                    col = v[:, k]
+                    starts = np.concatenate([[0], np.flatnonzero(col[1:] != col[:-1]) + 1])
+                    lens = np.diff(np.concatenate([starts, [col.size]]))
+                    if carry is not None and col[0] == carry[k][0]:
+                        lens[0] += carry[k][1]
+                    new_carry.append((float(col[-1]), int(lens[-1])))
+                    i = int(np.argmax(lens))
+                    val = abs(float(col[starts[i]]))
+                    if lens[i] >= c.rail_run and val >= c.rail_min[s]:
+                        r = self._rail.setdefault(s, [math.inf] * 3)
+                        r[k] = min(r[k], val)
+                        hit = True
+                self._run[s] = new_carry
+            if hit and not self._clip_on[s]:
+                what = ("attitude restarted, the block's updates skipped" if s == "gyro"
+                        else "its update skipped while clipped")
+                self._event("saturation", f"{s} at its rail ±{np.round(self._rail[s], 4).tolist()}: {what}", t)
+            self._clip_on[s] = hit
+            out[s] = hit
+        return out
 
     # ------------------------------------------------------------------------------------------
     # attitude (re)initialisation
@@ -406,12 +763,14 @@ class OnlineCalibrator:
         """Remove everything P knows about the heading (rotation about world z) and give it ``var``.
 
         The error is in the body frame, so the heading is the direction u = R_nomᵀ e_z of the attitude
-        error: P ← J P Jᵀ with J = I − u uᵀ on the attitude block, then var · u uᵀ added.
+        error: P ← J P Jᵀ with J = I − u uᵀ on the attitude block, then var · u uᵀ added. J differs from
+        the identity only in the attitude block, so only the attitude rows and columns change.
         """
         u = self.R_nom[2, :]  # R_nomᵀ e_z
-        J = np.eye(N_STATE)
-        J[ATT, ATT] -= np.outer(u, u)
-        P = J @ P @ J.T
+        J = np.eye(3) - np.outer(u, u)
+        P = P.copy()
+        P[ATT, :] = J @ P[ATT, :]
+        P[:, ATT] = P[:, ATT] @ J.T
         P[ATT, ATT] += var * np.outer(u, u)
         return P
 
@@ -536,74 +895,215 @@ class OnlineCalibrator:
             still = bool(np.all(np.abs(gm - prev[0]) < 2 * k * sg * d)
                          and np.all(np.abs(am - prev[1]) < 2 * k * sa * d))
             if still and mm is not None and prev[2] is not None:
-                sm = self._mag_noise_raw()
+                sm = n["mag"]
                 still = bool(np.all(np.abs(mm - prev[2]) < 2 * k * sm * math.sqrt(2.0 / m.shape[0])))
         self._prev_means = (gm, am, mm if mm is not None else (prev[2] if prev is not None else None))
         self._rest_count = self._rest_count + 1 if still else 0
+        self._still = still
         return self._rest_count >= c.rest_blocks
 
-    def _mag_noise_raw(self) -> float:
-        """Per-sample σ of the raw mag: from the spec relative to the field, in the raw unit (once known)."""
-        return self._noise()["mag"]
+    def _hold_flags(self, a: Array, m: Array, n: dict[str, float]) -> dict[str, bool]:
+        """Whether this block's accel / mag reading is held (its spread within the noise) and, if the
+        reading moved since the previous block, start a new hold offset (a fresh quantisation error)."""
+        out = {"accel": False, "mag": False}
+        prev = self._prev_means
+        for s, v, pi in (("accel", a, 1), ("mag", m, 2)):
+            if s not in self._hold_slice or v.shape[0] < 2:
+                self._held[s] = False
+                continue
+            q = (self._q or {}).get(s, 0.0)
+            held = bool(np.all(v.std(axis=0) <= 2.0 * n[s] + 0.5 * q))
+            same = (held and self._held[s] and prev is not None and prev[pi] is not None
+                    and bool(np.all(np.abs(v.mean(axis=0) - prev[pi]) < q + 3 * n[s] * math.sqrt(2.0 / v.shape[0]))))
+            if not same:
+                self._reset_hold(s)
+            self._held[s] = held
+            out[s] = held
+        return out
 
     # ------------------------------------------------------------------------------------------
     # the filter step
-    def _step(self, t: Array, w: Array, a: Array, tm: Array, m: Array) -> None:
-        """One UKF predict + update over the IMU block t (L,), w (L, 3), a (L, 3) and mag samples tm (M,)."""
+    def _sigma_points(self) -> Array:
+        """Scaled sigma points (2n+1, n) around x, from the Cholesky factor of P in ``self._perm`` order
+        (attitude-relevant states first), so that rows past the first n_dyn leave them at the mean."""
+        n = self.n
         c = self.config
+        lam = c.sp_alpha**2 * (n + c.sp_kappa) - n
+        perm = self._perm
+        U = np.linalg.cholesky((lam + n) * self.P[np.ix_(perm, perm)]).T  # rows: offsets, permuted order
+        D = np.empty((n, n))
+        D[:, perm] = U
+        X = np.empty((2 * n + 1, n))
+        X[0] = self.x
+        X[1 : n + 1] = self.x + D
+        X[n + 1 :] = self.x - D
+        return X
+
+    def _temp_reg(self, T: Array) -> Array:
+        """Regressor T − T0 (°C) of the temperature extensions; 0 where the log has no temperature."""
+        if self._T0 is None:
+            fin = T[np.isfinite(T)]
+            if fin.size:
+                self._T0 = float(fin[0])
+        if self._T0 is None:
+            return np.zeros_like(T)
+        return np.where(np.isfinite(T), T - self._T0, 0.0)
+
+    def _gyro_extra(self, Xd: Array, T: Array, a: Array, held: bool) -> Array | None:
+        """Extra raw gyro bias (S_d, L, 3) per dynamic sigma point and sample: the extensions' terms and,
+        while the gyro reading is held (at rest), its quantisation offset — the same error the
+        zero-rate update sees, so that the attitude drift does not read it as bias."""
+        ext = self._ext_slice
+        hold = held and "gyro" in self._hold_slice
+        if "temperature_bias:gyro" not in ext and "g_sensitivity" not in ext and not hold:
+            return None
+        L = T.shape[0]
+        b = np.zeros((Xd.shape[0], L, 3))
+        if hold:
+            b += Xd[:, self._hold_slice["gyro"]][:, None, :]
+        if "temperature_bias:gyro" in ext:
+            r = self._temp_reg(T)
+            b += Xd[:, ext["temperature_bias:gyro"]][:, None, :] * r[None, :, None]
+        if "g_sensitivity" in ext:
+            f = self._calibrated("accel", a)  # (L, 3) specific force, m/s²
+            b += Xd[:, ext["g_sensitivity"]][:, None, :] * f[None]
+        return b
+
+    def _step(self, t: Array, w: Array, a: Array, T: Array, tm: Array, m: Array,
+              clip: dict[str, bool]) -> None:
+        """One UKF predict + update over the IMU block t (L,), w (L, 3), a (L, 3), T (L,) °C and mag
+        samples tm (M,), m (M, 3)."""
+        c = self.config
+        tl = float(t[-1])
         if m.shape[0] and not self.mag_enabled:
             self._mag_collect(tm, m)
-            self._try_mag_fit(float(t[-1]))
+            self._try_mag_fit(tl)
         if self.mag_enabled and self._align_yaw_next and m.shape[0]:
             self._align_yaw(tm, m)
         use_mag = self.mag_enabled and m.shape[0] > 0 and not self._align_yaw_next
+        self._update_noise_level("gyro", w, tl)
+        self._update_noise_level("accel", a, tl)
+        if m.shape[0] >= 6:
+            self._update_noise_level("mag", m, tl)
+        n = self._noise()
+        held = self._hold_flags(a, m, n)
+        rest = self._rest_detect(w, a, m, n)
         try:
-            X = self.points.sigma_points(self.x, self.P)
+            X = self._sigma_points()
         except np.linalg.LinAlgError:
-            self._diverged("covariance is not positive definite", float(t[-1]))
+            self._diverged("covariance is not positive definite", tl)
             return
         L = t.size
+        dyn = self._dyn_pts
         pred = propagate_block(X, self.R_nom, float(self._t_last), self._w_last, t, w,
-                               tm if use_mag else np.zeros(0))
+                               tm if use_mag else np.zeros(0), dyn,
+                               self._gyro_extra(X[dyn], T, a, self._still))
         R_nom = pred.R_end[0]  # sigma point 0 is the mean (zero attitude error)
-        X = X.copy()
-        X[:, ATT] = rot_log(R_nom.T @ pred.R_end)
-        Wm, Wc = self.points.Wm, self.points.Wc
+        # the other points share the mean's attitude history: their error stays exactly 0
+        X[dyn, ATT] = rot_log(R_nom.T @ pred.R_end[dyn])
+        Wm, Wc = self._Wm, self._Wc
         dt_blk = float(t[-1] - self._t_last)
-        x_pred, P_pred = unscented_transform(X, Wm, Wc, self._process_noise(dt_blk, L))
+        q = self._process_noise(dt_blk, L)
+        # trapezoid error where the rate is not smooth (a jerk, a step): Δt·|Δ²ω|/4 per sample, added to
+        # the attitude noise
+        w3 = np.vstack([self._w_last[None], w])
+        if w3.shape[0] >= 3:
+            d2 = (w3[2:] - 2 * w3[1:-1] + w3[:-2]) * (np.diff(t)[:, None] if t.size > 1 else dt_blk) / 4
+            # less what the white noise alone gives (E[Δ²n]² = 6σ²), so that rest and smooth motion add ~0
+            noise = d2.size * 6.0 * (n["gyro"] * dt_blk / L / 4) ** 2
+            q[ATT] += max(0.0, float(np.sum(d2 * d2)) - noise) / 3.0
+        x_pred, P_pred = unscented_transform(X, Wm, Wc, np.diag(q))
         self.R_nom = R_nom
+        ext = self._ext_slice
+        T_reg = float(np.mean(self._temp_reg(T))) if ("temperature_bias:gyro" in ext
+                                                      or "temperature_bias:accel" in ext) else 0.0
 
         # measurements: block means
-        n = self._noise()
         zs, Zs, rs, names = [], [], [], []
         a_mean = a.mean(axis=0)
-        o_ga, M_ga = correction(np.stack([self.x[SENSOR_SLICE["gyro"]], self.x[SENSOR_SLICE["accel"]]]))
-        f_cal = M_ga[1] @ (a_mean - o_ga[1])
-        rate = float(np.linalg.norm(M_ga[0] @ (w.mean(axis=0) - o_ga[0])))
-        # quasi-static weighting: the deviation of |a| from g beyond what the noise explains, and the
-        # centripetal term of an unknown lever arm, both add to the accel variance (adaptive R)
+        o_g0, M_g0 = correction(self.x[None, SENSOR_SLICE["gyro"]])
+        rate = float(np.linalg.norm(M_g0[0] @ (w.mean(axis=0) - o_g0[0])))
+        # quasi-static weighting: the part of ||f| − g| that neither the noise nor the calibration's own
+        # uncertainty (spread of |f| over the sigma points) explains, and the centripetal term of an
+        # unknown lever arm, both add to the accel variance (adaptive R). Judged against the calibration's
+        # σ, not its mean alone, so that a calibration error is not taken for motion.
+        o_a, M_a, Minv_a = model_pair(X[:, SENSOR_SLICE["accel"]])
+        f_all = np.einsum("sij,sj->si", M_a, a_mean - o_a)
+        f_cal = f_all[0]  # sigma point 0 is the mean
+        nf = np.sqrt(np.einsum("si,si->s", f_all, f_all))
+        nf_mean = float(Wm @ nf)
+        var_cal = max(0.0, float(Wc @ (nf - nf_mean) ** 2))
         sig_mean = n["accel"] / math.sqrt(L)
-        dev = max(0.0, abs(float(np.linalg.norm(f_cal)) - c.gravity) - 3.0 * sig_mean)
-        var_a = sig_mean**2 + (c.acc_dev_gain * dev) ** 2 + (c.acc_lever_m * rate**2) ** 2
-        rest = self._rest_detect(w, a, m, n)
-        static = rest or (rate < c.static_rate and dev < c.static_dev)
-        zs.append(a_mean)
-        Zs.append(predict_raw(X, "accel", c.gravity * pred.f_body))
-        rs.append(np.full(3, var_a))
-        names.append("accel")
+        dev = max(0.0, abs(nf_mean - c.gravity) - 3.0 * math.sqrt(sig_mean**2 + var_cal))
+        # |f|² = g² + 2g·a_v + |a|²: a deviation dev of the norm allows a horizontal acceleration of up to
+        # √(2g·dev), which the norm does not show otherwise
+        var_a = (sig_mean**2 + (c.acc_dev_gain * dev) ** 2 + 2.0 * c.gravity * dev
+                 + (c.acc_lever_m * rate**2) ** 2)
+        # static (accel outliers soft-gated instead of dropped): a rest found in the raw data; the norm test
+        # alone cannot see a horizontal acceleration (|f| changes only to second order)
+        static = rest
+        if not clip["accel"]:
+            Za = np.einsum("sij,sj->si", Minv_a, c.gravity * pred.f_body) + o_a  # eq. 1 inverted
+            if held["accel"]:
+                Za = Za + X[:, self._hold_slice["accel"]]
+            if "temperature_bias:accel" in ext:
+                Za = Za + X[:, ext["temperature_bias:accel"]] * T_reg
+            zs.append(a_mean)
+            Zs.append(Za)
+            rs.append(np.full(3, var_a))
+            names.append("accel")
         if use_mag and pred.h_body is not None:
+            Zm = predict_raw(X, "mag", pred.h_body)
+            if held["mag"]:
+                Zm = Zm + X[:, self._hold_slice["mag"]]
             zs.append(m.mean(axis=0))
-            Zs.append(predict_raw(X, "mag", pred.h_body))
+            Zs.append(Zm)
             rs.append(np.full(3, n["mag"] ** 2 / m.shape[0]))
             names.append("mag")
-        if rest:
+        if rest and self._still:
             # zero-rate pseudo-measurement (the paper's bias from rests, eqs. 34–35, done online): at rest
-            # the raw gyro reads its bias, raw = M⁻¹·0 + o — linear in o, independent of M
+            # the raw gyro reads its bias, raw = M⁻¹·0 + o — linear in o, independent of M — plus the
+            # held reading's quantisation offset and the extensions' bias terms
             s_gyr = float(np.mean(self.x[index("gyro", "scale")]))
+            Zg = X[:, index("gyro", "bias")]
+            if "gyro" in self._hold_slice:
+                Zg = Zg + X[:, self._hold_slice["gyro"]]
+            if "temperature_bias:gyro" in ext:
+                Zg = Zg + X[:, ext["temperature_bias:gyro"]] * T_reg
+            if "g_sensitivity" in ext:
+                Zg = Zg + X[:, ext["g_sensitivity"]] * f_cal
             zs.append(w.mean(axis=0))
-            Zs.append(X[:, index("gyro", "bias")])
+            Zs.append(Zg)
             rs.append(np.full(3, n["gyro"] ** 2 / L + (c.rest_rate_sigma / s_gyr) ** 2))
             names.append("rest")
+        if not zs:
+            x_new, P_new = x_pred, P_pred
+        else:
+            x_new, P_new = self._update(X, x_pred, P_pred, zs, Zs, rs, names, static, tl)
+        P_new = 0.5 * (P_new + P_new.T)
+        # fold the attitude error into the nominal (reset, USQUE)
+        self.R_nom = self.R_nom @ rodrigues(x_new[None, ATT])[0]
+        x_new[ATT] = 0.0
+        if self._yaw_free:
+            # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone):
+            # forget it — marginalise it out and give it back a diffuse σ. A small σ would assert a
+            # heading knowledge the data do not hold and leak spurious information into the alphas.
+            P_new = self._set_yaw_variance(P_new, c.yaw_free_sigma**2)
+        if not np.all(np.isfinite(x_new)) or not np.all(np.isfinite(P_new)) or np.any(np.diag(P_new) <= 0):
+            self._diverged("non-finite state or non-positive variance", tl)
+            return
+        self.x, self.P = x_new, P_new
+        self._n_blocks += 1
+        if tl >= self._next_trace:
+            self._trace_row(tl)
+            self._next_trace = tl + c.trace_every_s
+
+    def _update(self, X: Array, x_pred: Array, P_pred: Array, zs: list[Array], Zs: list[Array],
+                rs: list[Array], names: list[str], static: bool, t: float) -> tuple[Array, Array]:
+        """Joint UKF update with the stacked measurements; chi-square gating per sensor (accel outside
+        a quasi-static block: dropped; otherwise its R inflated to gate size); consider states get no
+        gain and the covariance update in Joseph-like form stays the true error covariance for any gain."""
+        Wm, Wc = self._Wm, self._Wc
         z = np.concatenate(zs)
         Z = np.concatenate(Zs, axis=1)
         r_diag = np.concatenate(rs)
@@ -612,53 +1112,36 @@ class OnlineCalibrator:
         nu = z - z_pred
         keep = np.ones(z.size, bool)
         for k, s in enumerate(names):
+            if s == "rest":
+                continue
             sl = slice(3 * k, 3 * k + 3)
             try:
                 nis = float(nu[sl] @ np.linalg.solve(S_zz[sl, sl], nu[sl]))
             except np.linalg.LinAlgError:
                 nis = math.inf
-            if s == "rest":
-                continue
-            self._nis_record(s, nis, float(t[-1]))
             gate = self._gates[s]
+            if s == "accel" and not static and nis > gate:
+                # motion the model has no term for (linear acceleration): an outlier, not a statistic of
+                # the filter's consistency — dropped and counted, kept out of the NIS windows
+                keep[sl] = False
+                self._nis[s]["rejected"] += 1
+                continue
+            self._nis_record(s, nis, t)
             if nis > gate:
-                if s == "accel" and not static:
-                    keep[sl] = False
-                    self._nis[s]["rejected"] += 1
-                else:
-                    # soft gate: inflate R so this update counts no more than a gate-sized one
-                    infl = nis / gate
-                    S_zz[sl, sl] += np.diag(r_diag[sl] * (infl - 1))
-                    self._nis[s]["rejected"] += 1
-        if keep.any():
-            S_k = S_zz[np.ix_(keep, keep)]
-            Pxz_k = Pxz[:, keep]
-            K = np.linalg.solve(S_k, Pxz_k.T).T
-            # Schmidt ("consider") states: the gauge sensor's alpha is never updated; the covariance
-            # update in the form valid for any gain keeps P the true error covariance
-            K[self._consider] = 0.0
-            x_new = x_pred + K @ nu[keep]
-            KPzx = K @ Pxz_k.T
-            P_new = P_pred - KPzx - KPzx.T + K @ S_k @ K.T
-        else:
-            x_new, P_new = x_pred, P_pred
-        P_new = 0.5 * (P_new + P_new.T)
-        # fold the attitude error into the nominal (reset, USQUE)
-        self.R_nom = self.R_nom @ rodrigues(x_new[ATT])
-        x_new[ATT] = 0.0
-        if self._yaw_free:
-            # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone):
-            # forget it — marginalise it out and give it back a diffuse σ. A small σ would assert a
-            # heading knowledge the data do not hold and leak spurious information into the alphas.
-            P_new = self._set_yaw_variance(P_new, c.yaw_free_sigma**2)
-        if not np.all(np.isfinite(x_new)) or not np.all(np.isfinite(P_new)) or np.any(np.diag(P_new) <= 0):
-            self._diverged("non-finite state or non-positive variance", float(t[-1]))
-            return
-        self.x, self.P = x_new, P_new
-        self._n_blocks += 1
-        if t[-1] >= self._next_trace:
-            self._trace_row(float(t[-1]))
-            self._next_trace = float(t[-1]) + c.trace_every_s
+                # soft gate: inflate R so this update counts no more than a gate-sized one
+                self._nis[s]["rejected"] += 1
+                S_zz[sl, sl] += np.diag(r_diag[sl] * (nis / gate - 1))
+        if not keep.any():
+            return x_pred, P_pred
+        S_k = S_zz[np.ix_(keep, keep)]
+        Pxz_k = Pxz[:, keep]
+        K = np.linalg.solve(S_k, Pxz_k.T).T
+        # Schmidt ("consider") states: the gauge terms are never updated
+        K[self._consider] = 0.0
+        x_new = x_pred + K @ nu[keep]
+        KPzx = K @ Pxz_k.T
+        P_new = P_pred - KPzx - KPzx.T + K @ S_k @ K.T
+        return x_new, P_new
 
     # ------------------------------------------------------------------------------------------
     # consistency
@@ -688,14 +1171,35 @@ class OnlineCalibrator:
             st["bad_run"] = 0
         if st["bad_run"] >= self.config.divergence_windows:
             self._diverged(f"{sensor} NIS window mean {mean:.3g} far above its band [{lo:.3g}, {hi:.3g}] "
-                           f"for {st['bad_run']} windows", t)
+                           f"for {st['bad_run']} windows", t, sensor)
 
-    def _diverged(self, why: str, t: float) -> None:
+    def _diverged(self, why: str, t: float, sensor: str | None = None) -> None:
+        """Re-initialise: only the magnetometer (its terms and the dip, from the init or a new cold fit)
+        when its NIS alone ran away, otherwise every calibration state from the init calibration."""
+        if sensor == "mag":
+            self._event("divergence", why + "; magnetometer re-initialised", t)
+            x0, sig0 = self._prior()
+            sl = np.r_[np.arange(SENSOR_SLICE["mag"].start, SENSOR_SLICE["mag"].stop), DIP]
+            self.x[sl] = x0[sl]
+            self.P[sl, :] = 0.0
+            self.P[:, sl] = 0.0
+            self.P[sl, sl] = sig0[sl] ** 2
+            self.prior_sigma[sl], self.prior_x[sl] = sig0[sl], x0[sl]
+            self.mag_enabled = self.init is not None and self.init.mag is not None
+            self.dip_known = False
+            self._mag_buf, self._mag_buf_next, self._mag_fit_next = [], -math.inf, -math.inf
+            self._align_yaw_next = False
+            self._att_ok = False  # the heading restarts with the next block
+            self._nis["mag"].update({"sum": 0.0, "n": 0, "bad_run": 0})
+            return
         self._event("divergence", why + "; re-initialised from the init calibration", t)
         self._reset_calibration()
 
     def _event(self, kind: str, detail: str, t: float) -> None:
+        self._n_events += 1
         self.events.append({"t": float(t), "kind": kind, "detail": detail})
+        if len(self.events) > self.config.max_events:
+            del self.events[: len(self.events) - self.config.max_events]
 
     def nis_summary(self) -> dict[str, Any]:
         """Per sensor: updates, rejected by the gate, windows, share of window means inside the band."""
@@ -708,6 +1212,7 @@ class OnlineCalibrator:
                 "mean": float(ws.mean()) if ws.size else float("nan"),
                 "in_band": float(np.mean((ws >= lo) & (ws <= hi))) if ws.size else float("nan"),
             }
+        out["events_total"] = self._n_events
         return out
 
     # ------------------------------------------------------------------------------------------
@@ -716,13 +1221,14 @@ class OnlineCalibrator:
         return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
 
     def result(self) -> Calibration:
-        """The current estimate as a Calibration (source "online") with 1σ for bias, scale, alpha, xi."""
+        """The current estimate as a Calibration (source "online") with 1σ for bias, scale, alpha, xi, and
+        the model extensions (``extensions``, the contract's effect keys) with their σ."""
         sig = self.sigma()
         sens = {}
+        g = self.gauge
         for s in SENSORS:
             p = {q: self.x[index(s, q)] for q in PARAMS}
             sg = {q: sig[index(s, q)] for q in PARAMS}
-            g = self.gauge
             if g and s != g:
                 # alphas are relative to the gauge sensor's (held at its prior): their σ in B includes its σ
                 sg["alpha"] = np.hypot(sg["alpha"], sig[index(g, "alpha")])
@@ -731,18 +1237,39 @@ class OnlineCalibrator:
         meta = {"online": {
             "dip_deg": math.degrees(self.x[DIP]), "dip_sigma_deg": math.degrees(sig[DIP]),
             "mag_used": bool(self.mag_enabled), "imu_samples": self._n_imu, "blocks": self._n_blocks,
+            "gauge": {"sensor": g, "terms": list(self._gauge_terms()) if g else []},
+            "quantisation": {k: v for k, v in (self._q or {}).items()},
+            "hold_states": sorted(self._hold_slice),
             "events": list(self.events), "nis": self.nis_summary(),
         }}
         return Calibration(gyro=sens["gyro"], accel=sens["accel"], mag=sens["mag"], source="online",
-                           meta=meta)
+                           meta=meta, extensions=self.extensions())
+
+    def extensions(self) -> dict[str, Any]:
+        """Estimated model extensions in the contract's effect vocabulary: ``temperature_bias`` a list of
+        {sensor, axis, coeff, T0, sigma}, ``g_sensitivity`` a list of {axis, coeff, sigma}."""
+        sig = self.sigma()
+        out: dict[str, Any] = {}
+        for e, sl in self._ext_slice.items():
+            name, sensor = e.split(":")[0], EXTENSIONS[e][0]
+            for k, a in enumerate(AXES):
+                i = sl.start + k
+                d: dict[str, Any] = {"axis": a, "coeff": float(self.x[i]), "sigma": float(sig[i]),
+                                     "unit": EXTENSIONS[e][2]}
+                if name == "temperature_bias":
+                    d = {"sensor": sensor, **d, "T0": self._T0}
+                out.setdefault(name, []).append(d)
+        return out
+
+    def _public_names(self) -> list[tuple[int, str]]:
+        """Calibration terms, dip and extensions (attitude and hold offsets are nuisance states)."""
+        return [(i, nm) for i, nm in enumerate(self.names) if i >= 3 and not nm.startswith("hold.")]
 
     def observability(self) -> dict[str, dict[str, Any]]:
         """Per parameter: posterior σ / prior σ and whether it is excited (ratio below ``excited_ratio``)."""
         sig = self.sigma()
         out = {}
-        for i, nm in enumerate(NAMES):
-            if i < 3:
-                continue
+        for i, nm in self._public_names():
             ratio = float(sig[i] / self.prior_sigma[i]) if self.prior_sigma[i] > 0 else float("nan")
             out[nm] = {"ratio": ratio, "excited": bool(ratio < self.config.excited_ratio)}
         return out
@@ -760,11 +1287,20 @@ class OnlineCalibrator:
         # which turns excite a gyro axis-coupling term (small-angle eqs. 5–6): alpha_k couples the two
         # axes other than k; xi_z tilts y towards x, xi_y tilts z towards x, xi_x tilts z towards y
         xi_turn = {"x": "y or z", "y": "x or z", "z": "x or y"}
+        held = set()
+        if self.gauge:
+            held = {f"{self.gauge}.{p}.{a}" for p in self._gauge_terms() for a in AXES}
         for nm, o in obs.items():
-            if o["excited"]:
+            if o["excited"] or nm in held:
                 continue
             if nm == "dip":
                 add("hold still with the magnetometer calibrated (dip of the field)")
+                continue
+            if nm.startswith("ext."):
+                e = nm.split(".")[1]
+                add("let the temperature change (warm-up) for the temperature coefficients"
+                    if e.startswith("temperature_bias") else
+                    "turn with gravity along each gyro axis in turn (g-sensitivity)")
                 continue
             s, p, ax = nm.split(".")
             if s == "gyro":
@@ -793,9 +1329,7 @@ class OnlineCalibrator:
     def _trace_row(self, t: float) -> None:
         sig = self.sigma()
         row: dict[str, float] = {"t": t}
-        for i, nm in enumerate(NAMES):
-            if i < 3:
-                continue
+        for i, nm in self._public_names():
             row[nm] = float(self.x[i])
             row[nm + ".sigma"] = float(sig[i])
         for s, st in self._nis.items():
@@ -817,10 +1351,12 @@ class OnlineCalibrator:
             "schema": STATE_SCHEMA,
             "config": self.config.to_dict(),
             "init": self.init.to_dict() if self.init is not None else None,
+            "names": list(self.names), "holds": list(self._hold_slice), "hold_sigma": dict(self._hold_sigma),
             "x": self.x.tolist(), "P": self.P.tolist(), "R_nom": self.R_nom.tolist(),
             "prior_sigma": self.prior_sigma.tolist(), "prior_x": self.prior_x.tolist(),
             "rate": self._rate, "L": self._L,
             "pend_t": self._pend_t.tolist(), "pend_w": self._pend_w.tolist(), "pend_a": self._pend_a.tolist(),
+            "pend_T": [_fin(v) for v in self._pend_T.tolist()],
             "pend_tm": self._pend_tm.tolist(), "pend_m": self._pend_m.tolist(),
             "t_last": self._t_last, "w_last": self._w_last.tolist(), "att_ok": self._att_ok,
             "yaw_free": self._yaw_free,
@@ -828,24 +1364,28 @@ class OnlineCalibrator:
             "mag_enabled": self.mag_enabled, "dip_known": self.dip_known, "mag_buf": self._mag_buf,
             "mag_buf_next": _fin(self._mag_buf_next), "mag_fit_next": _fin(self._mag_fit_next),
             "next_trace": _fin(self._next_trace), "n_imu": self._n_imu, "n_blocks": self._n_blocks,
-            "nis": self._nis, "events": self.events, "trace": list(self._trace),
+            "nis": self._nis, "events": self.events, "n_events": self._n_events, "trace": list(self._trace),
             "rest_count": self._rest_count,
             "prev_means": None if self._prev_means is None else [
                 None if v is None else np.asarray(v).tolist() for v in self._prev_means],
+            "q": self._q, "q_mag_buf": self._q_mag_buf, "held": self._held,
+            "noise_ratio": self._noise_ratio, "noise_high": self._noise_high,
+            "rail": self._rail, "run": {k: [list(r) for r in v] for k, v in self._run.items()},
+            "clip_on": self._clip_on, "T0": self._T0,
         }
 
     def set_state(self, d: dict[str, Any]) -> None:
         """Restore from :meth:`get_state` (the instance's init and config are replaced by the saved ones)."""
         if d.get("schema") != STATE_SCHEMA:
-            raise ValueError(f"not a UKF state (schema {d.get('schema')!r})")
+            raise ValueError(f"not a UKF state (schema {d.get('schema')!r}, expected {STATE_SCHEMA})")
         self.config = UKFConfig.from_dict(d["config"])
         c = self.config
-        self.points = MerweScaledSigmaPoints(N_STATE, c.sp_alpha, c.sp_beta, c.sp_kappa,
-                                             sqrt_method=_sqrt_upper)
         self._gates = {"accel": float(chi2.ppf(c.acc_gate_p, 3)), "mag": float(chi2.ppf(c.mag_gate_p, 3))}
-        self._consider = self._consider_mask()
         self.init = Calibration.from_dict(d["init"]) if d["init"] is not None else None
-        self._consider = self._consider_mask()
+        self._build_layout(tuple(d["holds"]))
+        if list(self.names) != list(d["names"]):
+            raise ValueError("UKF state: its state names do not match its config")
+        self._hold_sigma = {k: float(v) for k, v in d["hold_sigma"].items()}
         self.x = np.asarray(d["x"], float)
         self.P = np.asarray(d["P"], float)
         self.R_nom = np.asarray(d["R_nom"], float)
@@ -855,6 +1395,7 @@ class OnlineCalibrator:
         self._pend_t = np.asarray(d["pend_t"], float).reshape(-1)
         self._pend_w = np.asarray(d["pend_w"], float).reshape(-1, 3)
         self._pend_a = np.asarray(d["pend_a"], float).reshape(-1, 3)
+        self._pend_T = np.array([math.nan if v is None else v for v in d["pend_T"]], float).reshape(-1)
         self._pend_tm = np.asarray(d["pend_tm"], float).reshape(-1)
         self._pend_m = np.asarray(d["pend_m"], float).reshape(-1, 3)
         self._t_last = d["t_last"]
@@ -871,11 +1412,22 @@ class OnlineCalibrator:
         self._n_imu, self._n_blocks = int(d["n_imu"]), int(d["n_blocks"])
         self._nis = d["nis"]
         self.events = list(d["events"])
+        self._n_events = int(d["n_events"])
         self._trace = deque(d["trace"], maxlen=c.trace_max_rows)
         self._rest_count = int(d.get("rest_count", 0))
         pm = d.get("prev_means")
         self._prev_means = (None if pm is None
                             else tuple(None if v is None else np.asarray(v, float) for v in pm))
+        self._q = d["q"]
+        self._q_mag_buf = [list(v) for v in d["q_mag_buf"]]
+        self._held = {k: bool(v) for k, v in d["held"].items()}
+        self._noise_ratio = {k: float(v) for k, v in d["noise_ratio"].items()}
+        self._noise_high = {k: bool(v) for k, v in d["noise_high"].items()}
+        self._rail = {k: [float(x) for x in v] for k, v in d["rail"].items()}
+        self._run = {k: [(float(r[0]), int(r[1])) for r in v] for k, v in d["run"].items()}
+        self._clip_on = {k: bool(v) for k, v in d["clip_on"].items()}
+        self._T0 = d["T0"]
+        self._T_last = math.nan
 
     @classmethod
     def from_state(cls, d: dict[str, Any]) -> OnlineCalibrator:

@@ -90,6 +90,17 @@ def correction(p: Array) -> tuple[Array, Array]:
     return o, s[:, :, None] * (TR @ TN)
 
 
+def model_pair(p: Array) -> tuple[Array, Array, Array]:
+    """:func:`correction` and :func:`sensor_model` at once (one T_R, one axes matrix): (o, M, M⁻¹).
+
+    ``p`` (S, 12); o (S, 3), M = S·T_R·T_N and M⁻¹ = A·T_Rᵀ·diag(1/s), both (S, 3, 3) (eqs. 1–6).
+    """
+    o, s, a, xi = p[:, 0:3], p[:, 3:6], p[:, 6:9], p[:, 9:12]
+    TR = euler_to_R(a)
+    A, TN = _axes_and_inverse(xi)
+    return o, s[:, :, None] * (TR @ TN), (A @ TR.transpose(0, 2, 1)) / s[:, None, :]
+
+
 def sensor_model(p: Array) -> tuple[Array, Array]:
     """Inverse of :func:`correction`, the sensor model itself: ``raw = M⁻¹ c + o``.
 

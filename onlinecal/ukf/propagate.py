@@ -77,33 +77,49 @@ def propagate_block(
     t: Array,
     w: Array,
     t_mag: Array,
+    dyn: Array | None = None,
+    b_extra: Array | None = None,
 ) -> BlockPrediction:
     """Integrate the attitude of every sigma point over one block of IMU samples.
 
-    X (S, 40) sigma points (δθ in X[:, 0:3], the gyro terms in X[:, 3:15], the dip in X[:, 39]);
+    X (S, n) sigma points (δθ in X[:, 0:3], the gyro terms in X[:, 3:15], the dip in X[:, 39]);
     R_nom (3, 3) nominal attitude; t_prev (s), w_prev (3,) rad/s the last sample before the block;
     t (L,) s, w (L, 3) raw gyro in rad/s; t_mag (M,) s mag sample times in (t_prev, t[-1]].
+
+    ``dyn`` (S_d,) indices of the sigma points that differ from the mean (index 0, listed first) in a
+    state the attitude depends on (attitude error, gyro terms, gyro extensions); every other sigma point
+    shares the mean's attitude history, which is computed once. ``b_extra`` (S_d, L, 3) rad/s an extra
+    raw gyro bias per dynamic sigma point and sample (model extensions), or None.
     """
-    o_g, M_g = correction(X[:, SENSOR_SLICE["gyro"]])
+    Xd = X if dyn is None else X[dyn]
+    o_g, M_g = correction(Xd[:, SENSOR_SLICE["gyro"]])
     w_all = np.vstack([w_prev[None], w])
     dt = np.diff(np.concatenate([[t_prev], t]))
     w_mid = 0.5 * (w_all[1:] + w_all[:-1])  # (L, 3) trapezoid: second order in Δt
+    u = w_mid[None] - o_g[:, None]
+    if b_extra is not None:
+        u = u - b_extra
     # θ[:, s, k] = M_s (w_mid_k − o_s) Δt_k, component-major (3, S, L)
-    theta = np.einsum("sij,slj->isl", M_g, w_mid[None] - o_g[:, None]) * dt
-    P = prefix_products_cm(rodrigues_cm(theta))  # (3, 3, S, L)
-    R0 = R_nom @ rodrigues(X[:, ATT])  # (S, 3, 3) right (body-frame) error around the nominal
+    theta = np.einsum("sij,slj->isl", M_g, u) * dt
+    P = prefix_products_cm(rodrigues_cm(theta))  # (3, 3, S_d, L)
+    R0 = R_nom @ rodrigues(Xd[:, ATT])  # (S_d, 3, 3) right (body-frame) error around the nominal
     R_end = R0 @ P[..., -1].transpose(2, 0, 1)
     # mean over the block of R_kᵀ e_z = (row z of R0 · mean_k P_k)ᵀ
     f_body = np.einsum("sk,kjs->sj", R0[:, 2, :], P.mean(axis=-1))
-    h_body = None
+    Q = None
     if t_mag.size:
         c = mag_weights(t_prev, t, t_mag)
-        Pm = np.einsum("ijsl,l->ijs", P, c[1:])
-        Pm[0, 0] += c[0]
-        Pm[1, 1] += c[0]
-        Pm[2, 2] += c[0]
-        hr = np.einsum("sj,sjk->sk", field_world(X[:, DIP]), R0)  # h_worldᵀ R0
-        h_body = np.einsum("sk,kis->si", hr, Pm)
+        Pm = np.einsum("ijsl,l->sij", P, c[1:])
+        Pm[:, 0, 0] += c[0]
+        Pm[:, 1, 1] += c[0]
+        Pm[:, 2, 2] += c[0]
+        Q = R0 @ Pm  # mean over the mag samples of R(t_m), (S_d, 3, 3)
+    if dyn is not None:
+        full = np.zeros(X.shape[0], dtype=np.intp)  # sigma points outside dyn share the mean's (row 0)
+        full[dyn] = np.arange(dyn.shape[0])
+        R_end, f_body = R_end[full], f_body[full]
+        Q = None if Q is None else Q[full]
+    h_body = None if Q is None else np.einsum("sj,sjk->sk", field_world(X[:, DIP]), Q)
     return BlockPrediction(R_end, f_body, h_body)
 
 

@@ -6,6 +6,7 @@ temperature °C (NaN where absent). IMU (gyro+accel+temp) and magnetometer keep 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -16,14 +17,28 @@ from numpy.typing import NDArray
 Array = NDArray[np.float64]
 
 
+_LINE_BREAKS = re.compile(r"[\n\r\v\f\x1c\x1d\x1e\x85\u2028\u2029]+")  # what str.splitlines splits on
+_MESSAGE_LIMIT = 300  # characters of ``message`` kept (a library's exception text can be long)
+
+
+def _one_line(text: str, limit: int | None = None) -> str:
+    text = _LINE_BREAKS.sub(" ", text)
+    return text if limit is None or len(text) <= limit else text[:limit - 3] + "..."
+
+
 class LogError(Exception):
-    """Unusable input. ``str()`` is the one line the CLI prints: ``path: where: problem``."""
+    """Unusable input. ``str()`` is the one line the CLI prints: ``path: where: problem``.
+
+    ``message`` and ``where`` are kept to one line (line breaks, e.g. from a wrapped library exception,
+    become spaces) and ``message`` to at most ``_MESSAGE_LIMIT`` characters.
+    """
 
     def __init__(self, path: str, message: str, where: str | None = None) -> None:
         self.path = str(path)
-        self.message = message
-        self.where = where
-        super().__init__(f"{self.path}: {where}: {message}" if where else f"{self.path}: {message}")
+        self.message = _one_line(str(message), _MESSAGE_LIMIT)
+        self.where = _one_line(str(where)) if where else None
+        head = _one_line(self.path)
+        super().__init__(f"{head}: {self.where}: {self.message}" if self.where else f"{head}: {self.message}")
 
 
 @dataclass

@@ -14,6 +14,7 @@ from __future__ import annotations
 import itertools
 import math
 import operator
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -21,7 +22,7 @@ from typing import IO
 import numpy as np
 
 from onlinecal.io.base import Array, ImuData, LogError
-from onlinecal.io.validate import BlockAssembler, SampleFilter
+from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file
 
 TIME = "time_s"
 GYRO = ("gyro_x", "gyro_y", "gyro_z")
@@ -31,6 +32,7 @@ TEMP = "temp_c"
 COLUMNS = (TIME, *GYRO, *ACC, *MAG, TEMP)
 
 _HEADER_LIMIT = 1 << 16  # a header longer than this is not a header (e.g. a binary file)
+_BINARY = re.compile("[\x00-\x08\x0e-\x1f\x7f\ufffd]")  # NUL, control characters, undecodable bytes
 
 
 class CsvReader:
@@ -49,6 +51,7 @@ class CsvReader:
         # unit conversion of the integer formats).
         self.scale = {k: 1.0 if v is None else float(v)
                       for k, v in (("acc", acc_scale), ("gyro", gyro_scale), ("mag", mag_scale))}
+        check_file(self.path)  # the same words as the other formats for a missing, empty or directory path
         with self._open() as f:
             self._names, self._col = self._read_header(f)
         self._layout()
@@ -68,6 +71,8 @@ class CsvReader:
             raise LogError(self.path, "empty file")
         if len(line) >= _HEADER_LIMIT and not line.endswith("\n"):
             raise LogError(self.path, "first line is not a CSV header (too long; binary file?)", "line 1")
+        if _BINARY.search(line):
+            raise LogError(self.path, "first line is not a CSV header (binary data; not a .csv file?)", "line 1")
         names = [c.strip().lower() for c in line.rstrip("\r\n").split(",")]
         col: dict[str, int] = {}
         for i, name in enumerate(names):
@@ -104,7 +109,7 @@ class CsvReader:
         Raises LogError for malformed rows (naming the line) and, at the end, for a log that is
         unusable as a whole (see :mod:`onlinecal.io.validate`).
         """
-        filt = SampleFilter(self.path, unit="rows")
+        filt = SampleFilter(self.path, unit="rows", lookahead=LOOKAHEAD, gaps=True)
         self.warnings = filt.warnings
         asm = BlockAssembler(self.path, filt.warnings, max_samples)
         # Lines hold IMU or mag samples, so read a bit more than one block's worth per chunk.
@@ -128,6 +133,7 @@ class CsvReader:
                 yield from asm.pop()
         if empty_rows:
             filt.note(f"skipped {empty_rows} rows with no sensor values")
+        asm.add(*filt.flush())
         filt.finish()
         yield from asm.pop(final=True)
 

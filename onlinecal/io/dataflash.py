@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.validate import BlockAssembler, SampleFilter, check_file
+from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file
 
 HEAD = b"\xa3\x95"
 FMT_ID = 0x80
@@ -42,6 +42,8 @@ IMU_FORMAT = ("IMU", "QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,
 MAG_FORMAT = ("MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S")
 _NP = {"Q": "<u8", "B": "u1", "f": "<f4", "I": "<u4", "H": "<u2", "h": "<i2"}
 _SKIPPED = re.compile(r"Skipped (\d+) bad bytes")
+_IMU_FIELDS = ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ")
+_MAG_FIELDS = ("MagX", "MagY", "MagZ")
 
 
 @contextlib.contextmanager
@@ -75,6 +77,38 @@ def _captured_output(fd_level: bool = False) -> Iterator[io.StringIO]:
             os.close(saved)
 
 
+_GUARDED: type | None = None
+
+
+def _guarded_reader_class() -> type:
+    """pymavlink's ``DFReader_binary`` with a parser that always moves forward.
+
+    A FMT record declaring a message length of 0 bytes (only a corrupt one does: the header alone is 3)
+    makes pymavlink's ``_parse_next`` return a message without advancing, so its readers loop for ever
+    on it. Here such a message is dropped and parsing resumes one byte later, as pymavlink itself does
+    for bytes it cannot parse; ``stalls`` counts them.
+    """
+    global _GUARDED
+    if _GUARDED is None:
+        from pymavlink import DFReader
+
+        class GuardedDFReader(DFReader.DFReader_binary):
+            stalls = 0
+
+            def _parse_next(self) -> Any:
+                while True:
+                    start = self.offset
+                    m = super()._parse_next()
+                    if m is None or self.offset > start:
+                        return m
+                    self.stalls += 1
+                    self.offset = start + 1
+                    self.remaining = self.data_len - self.offset
+
+        _GUARDED = GuardedDFReader
+    return _GUARDED
+
+
 class DataflashReader:
     """Streaming reader of IMU instance 0 and MAG instance 0 of one DataFlash ``.bin`` log."""
 
@@ -91,17 +125,17 @@ class DataflashReader:
 
     def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
         """Yield ImuData blocks of at most ``max_samples`` IMU samples, in log order."""
-        from pymavlink import DFReader
-
-        filt = SampleFilter(self.path, unit="messages")
+        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True)
         self.warnings = filt.warnings
         asm = BlockAssembler(self.path, filt.warnings, max_samples)
         skipped = 0
         try:
             with _captured_output(fd_level=True):
-                dfr = DFReader.DFReader_binary(self.path, zero_time_base=True)
+                dfr = _guarded_reader_class()(self.path, zero_time_base=True)
         except Exception as e:
             raise LogError(self.path, f"not a readable DataFlash log: {type(e).__name__}: {e}") from None
+        stalls0 = dfr.stalls  # those of the constructor's own passes over the log are counted again below
+        unindexed = _unindexed_from(dfr)
         batch = _Batch(self.path)
         flush_every = max(1, min(max_samples, 1 << 14))
         try:
@@ -118,12 +152,27 @@ class DataflashReader:
             with contextlib.suppress(Exception):
                 dfr.data_map.close()
                 dfr.filehandle.close()
+        if unindexed is not None:
+            rest = dfr.data_len - unindexed
+            if batch.n_imu_msg == 0:
+                raise LogError(self.path, f"no IMU messages read: pymavlink's index of the log stops here, {rest} "
+                               f"bytes before the end (a corrupt FMT record?)", f"byte {unindexed}")
+            filt.note(f"pymavlink's index of the log stops at byte {unindexed} (a corrupt FMT record?); the "
+                      f"remaining {rest} bytes were not read")
         if batch.n_imu_msg == 0:
+            if not _n_records(dfr):
+                raise LogError(self.path, "no DataFlash record in it (FMT or other); not an ArduPilot .bin log?")
             raise LogError(self.path, "no IMU messages in the log")
         if batch.other:
             filt.note(f"read IMU and MAG instance 0; ignored {', '.join(sorted(batch.other))}")
         if skipped:
             filt.note(f"skipped {skipped} corrupt bytes that pymavlink could not parse")
+        if dfr.stalls > stalls0:
+            filt.note(f"skipped {dfr.stalls - stalls0} messages whose FMT record declares a length of 0 bytes "
+                      f"(corrupt)")
+        if batch.mag_unusable:
+            filt.note(f"magnetometer not read: {batch.mag_unusable}")
+        asm.add(*filt.flush())
         filt.finish()
         yield from asm.pop(final=True)
 
@@ -146,6 +195,7 @@ class _Batch:
         self.other: set[str] = set()  # instances seen and not read
         self.n_msg = 0
         self.n_imu_msg = 0
+        self.mag_unusable = ""  # why MAG messages are not read, once one proved unreadable
 
     def read(self, dfr: Any, limit: int) -> bool:
         """Read until ``limit`` rows are held; True when the log has ended."""
@@ -158,33 +208,74 @@ class _Batch:
             if m is None:
                 return True
             self.n_msg += 1
+            typ = m.get_type()
+            if typ == "MAG" and self.mag_unusable:
+                continue
             try:
-                typ = m.get_type()
-                inst = int(getattr(m, "I", 0))
+                inst = _instance(m)
                 t = _time_s(m)
                 if typ == "IMU":
                     self.n_imu_msg += 1
                     if inst == 0:
                         temp = float(getattr(m, "T", float("nan")))
-                        self.imu.append((t, m.GyrX, m.GyrY, m.GyrZ, m.AccX, m.AccY, m.AccZ, temp))
+                        self.imu.append((t, *(float(getattr(m, f)) for f in _IMU_FIELDS), temp))
                     else:
                         self.other.add(f"IMU instance {inst}")
                 elif inst == 0:
-                    self.mag.append((t, m.MagX, m.MagY, m.MagZ))
+                    self.mag.append((t, *(float(getattr(m, f)) for f in _MAG_FIELDS)))
                 else:
                     self.other.add(f"MAG instance {inst}")
-            except (AttributeError, TypeError, ValueError) as e:
+            except Exception as e:  # pymavlink's field access on a corrupt FMT: AttributeError, IndexError, ...
+                # Fields come from the FMT record, so every message of this type is alike: a broken
+                # schema, not one bad message. IMU is required; MAG is optional and is then not read.
                 where = f"byte {getattr(dfr, 'offset', '?')}, message {self.n_msg}"  # the message's end
-                raise LogError(self.path, f"{m.get_type()} message without a usable field ({e})",
-                               where) from None
+                problem = (f"{typ} message without a usable field ({type(e).__name__}: {e}); its FMT record "
+                           f"is corrupt or not ArduPilot's")
+                if typ == "IMU":
+                    raise LogError(self.path, problem, where) from None
+                self.mag_unusable = f"{problem}, first at {where}"
         return False
+
+
+def _unindexed_from(dfr: Any) -> int | None:
+    """The byte where pymavlink's index of the log ends, if message headers follow it (None if not).
+
+    pymavlink's indexer stops at the first FMT record it cannot use (a declared length under 3): what
+    follows is never read, and would otherwise be lost without a word."""
+    try:
+        ends = [int(o[-1]) + int(dfr.formats[t].len) for t, o in enumerate(dfr.offsets)
+                if len(o) and t in dfr.formats]
+        end = max(ends, default=0)
+        if end < dfr.data_len and dfr.data_map.find(HEAD, end) >= 0:
+            return end
+    except Exception:  # an index pymavlink laid out differently: no claim either way
+        return None
+    return None
+
+
+def _n_records(dfr: Any) -> int:
+    """Records pymavlink indexed (any type); -1 if its index is laid out differently."""
+    try:
+        return int(sum(dfr.counts))
+    except Exception:
+        return -1
 
 
 def _time_s(m: Any) -> float:
     t = getattr(m, "TimeUS", None)
     if t is not None:
         return float(t) * 1e-6
-    return float(m.TimeMS) * 1e-3  # logs before TimeUS (ArduPilot < 3.3)
+    t = getattr(m, "TimeMS", None)  # logs before TimeUS (ArduPilot < 3.3)
+    if t is None:
+        raise AttributeError("neither TimeUS nor TimeMS")
+    return float(t) * 1e-3
+
+
+def _instance(m: Any) -> int:
+    i = getattr(m, "I", 0)
+    if isinstance(i, float) and not i.is_integer():
+        raise ValueError(f"instance I = {i!r} is not an integer")
+    return int(i)
 
 
 def _record_dtype(fmt: str, columns: str) -> np.dtype:

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.validate import BlockAssembler, SampleFilter, check_file
+from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file
 
 G0 = 9.80665
 IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "HIGHRES_IMU")
@@ -42,6 +42,7 @@ _SI_UNITS = {"acc": 1.0, "gyro": 1.0, "mag": 1.0}  # HIGHRES_IMU
 _DECIDE_AFTER = 1000  # IMU messages looked at before settling for a source other than RAW_IMU id 0
 _TLOG_EPOCH_US = 1_700_000_000_000_000  # wall-clock base of written tlog timestamps (2023-11-14)
 _INT16 = (-32768, 32767)
+_NOT_MESSAGES = ("MAV", "HOME", "BAD_DATA")  # entries of pymavlink's ``messages`` that are not a message read
 
 
 def mavutil_v2() -> Any:
@@ -72,7 +73,7 @@ class TlogReader:
 
     def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
         """Yield ImuData blocks of at most ``max_samples`` IMU samples, in log order."""
-        filt = SampleFilter(self.path, unit="messages")
+        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True)
         self.warnings = filt.warnings
         asm = BlockAssembler(self.path, filt.warnings, max_samples)
         mavutil = mavutil_v2()
@@ -125,7 +126,15 @@ class TlogReader:
         finally:
             conn.close()
         if not seen:
-            raise LogError(self.path, f"no IMU messages ({', '.join(IMU_MESSAGES)}) in the log")
+            # UNKNOWN_<id>: an id this dialect lacks, so no CRC check either; random bytes give some.
+            kinds = sorted(k for k in getattr(conn, "messages", {})
+                           if k not in _NOT_MESSAGES and "[" not in k and not k.startswith("UNKNOWN_"))
+            if not kinds:
+                size = os.path.getsize(self.path)
+                raise LogError(self.path, f"no MAVLink message in its {size} bytes ({n_bad} undecodable stretches); "
+                               f"not a MAVLink telemetry log?")
+            shown = ", ".join(kinds[:8]) + (", ..." if len(kinds) > 8 else "")
+            raise LogError(self.path, f"no IMU messages ({', '.join(IMU_MESSAGES)}) in the log; it holds {shown}")
         self._flush(st, filt, asm)
         self.source = seen[chosen]
         others = [d for k, d in seen.items() if k != chosen]
@@ -136,6 +145,7 @@ class TlogReader:
                       f"(no compass reading); not used as mag samples")
         if n_bad:
             filt.note(f"skipped {n_bad} stretches of bytes pymavlink could not decode (bad CRC or garbage)")
+        asm.add(*filt.flush())
         filt.finish()
         yield from asm.pop(final=True)
 

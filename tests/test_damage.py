@@ -321,7 +321,9 @@ def test_cli_batch_on_damaged_logs(tmp_path, sess):
 
     code, out, err = res[damaged]
     assert code == 0 and "Traceback" not in err, err
-    warned = [w for w in err.splitlines() if w.startswith("warning: dropped")]
+    # Each reader warning names its file (several logs of one unit are merged into one report).
+    mine = f"warning: {damaged}: dropped"
+    warned = [w.replace(f"{damaged}: ", "", 1) for w in err.splitlines() if w.startswith(mine)]
     assert warned == [
         f"warning: dropped {drop.sum()} IMU rows of all zeros (sensor dropout)",
         "warning: dropped 5 IMU rows with NaN, inf or missing values",
@@ -335,6 +337,6 @@ def test_cli_batch_on_damaged_logs(tmp_path, sess):
         code, out, err = res[UNMOVED]
         assert code == 0 and "Traceback" not in err, err
         lines = err.splitlines()
-        assert lines[:2] == ["warning: dropped 720 IMU rows of all zeros (sensor dropout)",
-                             "warning: dropped 168 mag rows of all zeros (sensor dropout)"]
+        assert lines[:2] == [f"warning: {UNMOVED}: dropped 720 IMU rows of all zeros (sensor dropout)",
+                             f"warning: {UNMOVED}: dropped 168 mag rows of all zeros (sensor dropout)"]
         assert "batch pipeline: 6280 IMU samples" in out

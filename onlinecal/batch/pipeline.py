@@ -49,7 +49,8 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
     logs = [d for d in logs if d.n_imu > 0]
     if not logs:
         raise FitError("no IMU samples in the logs")
-    warnings: list[str] = [w for d in logs for w in d.warnings]
+    # Reader warnings carry no file name; with several logs of one unit the user must know which one.
+    warnings: list[str] = [w if d.source in w else f"{d.source}: {w}" for d in logs for w in d.warnings]
     floors = noise_floors(logs)
     segs = [segment(d, floors) for d in logs]
     # Too few true rests (hand-held campaigns): fall back to quasi-static rests for the fits that need

@@ -1,0 +1,196 @@
+"""The statistical core of diagnose: stack the sessions' residual rows, fit the baseline's nuisance, score every
+candidate extension on held-out data, and select effects forward (most held-out likelihood first).
+
+The same function runs on the measured sessions and on their re-simulation through the fitted baseline
+(the parametric-bootstrap null of :mod:`.resim`), so "significant" means: better than what this session's
+own motion and noise produce without any effect.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import cho_factor, cho_solve
+
+from ..model import Calibration
+from .detectors import Candidate, candidates, drift_knots, drift_prior
+from .regressors import SUBCHANNELS, Design, nuisance
+from .score import Gain, Problem, folds, robust_sigma, solve
+
+Array = NDArray[np.float64]
+Q_GRID = {"gyro": np.logspace(-6.5, -2.0, 10), "accel": np.logspace(-5.5, -1.0, 10)}
+# channels each candidate acts on (for the before/after RMS)
+CHANNELS = {
+    "gyro": ("g_rest_x", "g_rest_y", "g_rest_z", "ka_x", "ka_y", "ka_z", "km_x", "km_y", "km_z"),
+    "accel": ("a_norm", "ka_x", "ka_y", "ka_z", "dip"),
+    "all": ("ka_x", "ka_y", "ka_z", "km_x", "km_y", "km_z", "dip"),
+}
+
+
+@dataclass
+class Scored:
+    cand: Candidate
+    blocks: list[str]
+    gain: Gain
+    params: dict[str, Any] = field(default_factory=dict)
+    priors: dict[str, Array] = field(default_factory=dict)
+
+
+@dataclass
+class Analysis:
+    problem: Problem
+    designs: list[Design]
+    cal: Calibration
+    cands: list[Candidate]
+    blocks: dict[str, list[str]]  # candidate key → its column blocks
+    priors: dict[str, Array]  # drift blocks → prior precision at the ML density
+    q: dict[str, Array]  # drift candidate key → ML density per axis
+    q_lr: dict[str, Array]  # drift candidate key → 2·Δ log ML for dropping each axis
+    first: dict[str, Gain] = field(default_factory=dict)  # each candidate against the baseline alone
+
+    def score(self, base: list[str], key: str) -> Gain:
+        return self.problem.gain(base, self.blocks[key], self.priors)
+
+    def params(self, model: list[str], key: str) -> dict[str, Any]:
+        cand = next(c for c in self.cands if c.key == key)
+        beta, cov = self.problem.fit(model + self.blocks[key], self.priors)
+        k = sum(self.problem.blocks[b].stop - self.problem.blocks[b].start for b in self.blocks[key])
+        b, C = beta[-k:], cov[-k:, -k:]
+        if cand.effect == "bias_drift":
+            return cand.params(b, C, self.designs, self.cal, q=self.q[key], lr=self.q_lr[key])
+        return cand.params(b, C, self.designs, self.cal)
+
+
+class _Marginal:
+    """Restricted log marginal likelihood of a Gaussian-prior block over a flat-prior base (whitened rows,
+    MacKay 1992): with the base profiled out (Schur complement S, reduced c̃, ỹ'ỹ),
+    log ML(Π) = −½ (ỹ'ỹ − c̃'(S + Π)⁻¹c̃) − ½ log det(S + Π) + ½ log det Π."""
+
+    def __init__(self, P: Problem, base: list[str], ext: list[str]) -> None:
+        G = P.G[0] + P.G[1]
+        bi, ei = P.idx(base), P.idx(ext)
+        G00 = G[np.ix_(bi, bi)]
+        G01 = G[np.ix_(bi, ei)]
+        # G00⁺ [G01 c0] through the same ridge-regularised Cholesky as every fit
+        X = np.column_stack([G01, G[bi, -1]])
+        sol = np.column_stack([solve(G00, X[:, k])[0] for k in range(X.shape[1])])
+        self.S = G[np.ix_(ei, ei)] - G01.T @ sol[:, :-1]
+        self.c = G[ei, -1] - G01.T @ sol[:, -1]
+        self.yy = float(G[-1, -1] - G[bi, -1] @ sol[:, -1])
+
+    def __call__(self, prior: Array, logdet_prior: float) -> float:
+        A = self.S + prior
+        cf = cho_factor(A, check_finite=False)
+        fit = float(self.c @ cho_solve(cf, self.c, check_finite=False))
+        ld = 2 * float(np.sum(np.log(np.diag(cf[0]))))
+        return -0.5 * (self.yy - fit) - 0.5 * ld + 0.5 * logdet_prior
+
+
+def _fit_density(P: Problem, base: list[str], blocks: list[str], Ks: list[int], dts: list[float],
+                 grid: Array) -> tuple[Array, Array, dict[str, Array]]:
+    """Per-axis random-walk density by maximum marginal likelihood (coordinate search on a log grid)."""
+    mar = _Marginal(P, base, blocks)
+
+    def ml(q: Array) -> float:
+        pri = _blockdiag([drift_prior(K, q, dt) for K, dt in zip(Ks, dts, strict=True)])
+        # det(DᵀD) = 1 (unit lower-bidiagonal D): log det Π = −Σ_blocks K Σ_axes log(q²·dt)
+        ld = -sum(K * float(np.sum(np.log(np.maximum(q, 1e-12) ** 2 * dt))) for K, dt in zip(Ks, dts, strict=True))
+        return mar(pri, ld)
+
+    # coordinate search on the coarse grid, then a parabola through the best point and its neighbours in
+    # log q (the grid steps are 0.5 decade; the density must come out within a few per cent)
+    q = np.full(3, grid[len(grid) // 2])
+    for _ in range(2):
+        for j in range(3):
+            vals = []
+            for g in grid:
+                qq = q.copy()
+                qq[j] = g
+                vals.append(ml(qq))
+            i = int(np.argmax(vals))
+            q[j] = grid[i]
+            if 0 < i < len(grid) - 1:
+                y0, y1, y2 = vals[i - 1], vals[i], vals[i + 1]
+                den = y0 - 2 * y1 + y2
+                if den < 0:
+                    h = float(np.log(grid[i + 1] / grid[i]))
+                    q[j] = grid[i] * float(np.exp(np.clip(0.5 * h * (y0 - y2) / den, -h, h)))
+    best = ml(q)
+    lr = np.zeros(3)
+    for j in range(3):
+        qq = q.copy()
+        qq[j] = grid[0] * 1e-3
+        lr[j] = 2 * (best - ml(qq))
+    pri = {}
+    for b, K, dt in zip(blocks, Ks, dts, strict=True):
+        pri[b] = drift_prior(K, q, dt)
+    return q, lr, pri
+
+
+def _blockdiag(ms: list[Array]) -> Array:
+    n = sum(m.shape[0] for m in ms)
+    out = np.zeros((n, n))
+    i = 0
+    for m in ms:
+        k = m.shape[0]
+        out[i : i + k, i : i + k] = m
+        i += k
+    return out
+
+
+def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = None) -> Analysis:
+    """Rows, nuisance, candidate columns, whitening, drift densities and every candidate's first-step gain."""
+    y = np.concatenate([d.y for d in designs])
+    ch = np.concatenate([d.ch for d in designs])
+    t = np.concatenate([d.t for d in designs])
+    sid = np.concatenate([np.full(d.y.size, d.sid) for d in designs])
+    fold = folds(t, sid)
+    has_mag = any(d.mhat is not None for d in designs)
+    has_temp = any(d.s.has_temp for d in designs)
+    cands = [c for c in candidates(has_mag, has_temp) if only is None or c.key in only]
+    cols: dict[str, Array] = {"nuisance": np.concatenate([nuisance(d) for d in designs], axis=0)}
+    blocks: dict[str, list[str]] = {}
+    offs = np.cumsum([0] + [d.y.size for d in designs])
+    for c in cands:
+        if c.k_per_session:
+            names = []
+            for i, d in enumerate(designs):
+                X = c.columns(d, cal)
+                full = np.zeros((y.size, X.shape[1]))
+                full[offs[i] : offs[i + 1]] = X
+                nm = f"{c.key}#{i}"
+                cols[nm] = full
+                names.append(nm)
+            blocks[c.key] = names
+        else:
+            cols[c.key] = np.concatenate([c.columns(d, cal) for d in designs], axis=0)
+            blocks[c.key] = [c.key]
+    for k in cols:  # a column undefined somewhere (no clean signal there) carries no information there
+        cols[k] = np.nan_to_num(cols[k], nan=0.0, posinf=0.0, neginf=0.0)
+    # whitening σ from the baseline's residual over all rows
+    X0 = cols["nuisance"]
+    beta = solve(X0.T @ X0, X0.T @ y)[0]
+    sigma = robust_sigma(y - X0 @ beta, ch, len(SUBCHANNELS))
+    P = Problem.build(y, ch, t, fold, sigma, cols)
+    priors: dict[str, Array] = {}
+    q: dict[str, Array] = {}
+    q_lr: dict[str, Array] = {}
+    for c in cands:
+        if c.effect == "bias_drift":
+            Ks = [drift_knots(d).size - 1 for d in designs]
+            dts = [float(np.diff(drift_knots(d))[0]) for d in designs]
+            q[c.key], q_lr[c.key], pri = _fit_density(P, ["nuisance"], blocks[c.key], Ks, dts, Q_GRID[c.sensor])
+            priors.update(pri)
+    an = Analysis(P, designs, cal, cands, blocks, priors, q, q_lr)
+    for c in cands:
+        an.first[c.key] = an.score(["nuisance"], c.key)
+    return an
+
+
+def channel_mask(P: Problem, sensor: str) -> Array:
+    names = CHANNELS.get(sensor, CHANNELS["all"])
+    ids = [SUBCHANNELS.index(n) for n in names]
+    return np.isin(P.ch, ids)

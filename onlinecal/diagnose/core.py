@@ -1,0 +1,401 @@
+"""``diagnose``: where the paper's sensor model disagrees with the data, the named cause, the extended model
+and its measured gain (the stages are the sibling modules; this one runs them in order).
+
+1. baseline: the batch pipeline (paper Sec. III) — after undoing an inverted axis, if the handedness test
+   finds one, and with clipped samples censored, if a rail is found;
+2. residual channels of the baseline (:mod:`.regressors`) and the re-simulated session (:mod:`.resim`);
+3. every candidate scored by its held-out log-likelihood gain (:mod:`.score`); the same score on the
+   re-simulation is the null; forward selection keeps a candidate while its gain clears
+   max(BIC penalty, null + margin);
+4. the selected effects' parameters (the spec's keys) and the extended calibration (``extensions``);
+5. the simulator with the fitted extension, checked against the measured residual statistics.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..batch import run_batch
+from ..batch.ellipsoid import FitError
+from ..batch.segment import noise_floors, segment
+from ..io.base import ImuData
+from ..model import Calibration
+from ..sim.motion import G0
+from .analysis import Analysis, analyse, channel_mask
+from .detectors import Handedness, Saturated, find_axis_sign, find_saturation
+from .motion import prepare
+from .regressors import SUBCHANNELS, Design
+from .resim import resimulate
+from .result import Diagnosis, Finding
+from .stats import channel_stats, rest_stats
+
+Array = NDArray[np.float64]
+MAX_EFFECTS = 4
+NULL_MARGIN = 15.0  # nats above the re-simulation's own score
+
+
+def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
+             exclude: list[Array | None] | None = None) -> list[Design]:
+    out = []
+    for i, (d, sg) in enumerate(zip(logs, segs, strict=True)):
+        s = prepare(d, cal, sg.rests)
+        if s.n < 50:
+            continue
+        out.append(Design(s, g, i, None if exclude is None else exclude[i]))
+    return out
+
+
+def _threshold(k: float, n: int, null: float) -> float:
+    """Significance bar (nats): the BIC penalty ½·k·ln n, and the re-simulation's score plus a margin."""
+    return max(0.5 * k * np.log(max(n, 2)), null + NULL_MARGIN)
+
+
+def _k(an: Analysis, key: str, gain: Any) -> float:
+    """Parameters a candidate adds, for the BIC bar: a random walk (bias_drift) is a hierarchical model whose
+    knot values are integrated out in the marginal likelihood; its parameters are the 3 densities."""
+    return 3.0 if key in an.q else float(gain.k)
+
+
+EVIDENCE = {
+    "temperature_bias": "the {sensor} residual follows the temperature column (coefficient per °C) better on held-out "
+                        "time blocks than a bias that wanders freely",
+    "bias_drift": "the {sensor} bias wanders between rests (random walk of density {density:.3g}/√s by maximum "
+                  "marginal likelihood), more than temperature explains",
+    "g_sensitivity": "the gyro's rest readings change with the direction of gravity across the static positions",
+    "scale_nonlinearity": "the {sensor} error grows with the square of the rate (fast turns vs slow ones), beyond "
+                          "what a linear scale absorbs",
+    "lever_arm": "accelerometer residuals follow ω̇×r + ω×(ω×r) during turns (|f| ≠ g while rotating)",
+    "time_offset": "the {sensor} lags the other sensors: the kinematic residual follows −δ·v̇ during turns",
+}
+
+
+def _finding(an: Analysis, model: list[str], key: str, gain: Any, thr: float, null: float,
+             significant: bool) -> Finding:
+    cand = next(c for c in an.cands if c.key == key)
+    params = an.params(model, key)
+    sensor = params.pop("sensor", cand.sensor)
+    axis = params.pop("axis", None)
+    txt = EVIDENCE.get(cand.effect, "").format(sensor=sensor, **{k: v for k, v in params.items()
+                                                                   if isinstance(v, float)})
+    ev = (f"{txt}; held-out log-likelihood gain {gain.loglik_gain:.1f} nats against a bar of {thr:.1f} "
+          f"(re-simulation without effects: {null:.1f}).")
+    return Finding(cand.effect, sensor, axis, float(gain.loglik_gain), significant, params, gain.to_dict(), ev,
+                   thr, null)
+
+
+def _extension(f: Finding, T0: float | None) -> dict[str, Any]:
+    """The calibration JSON's ``extensions`` entry (onlinecal.extensions format) for a finding."""
+    p = f.parameters
+    e: dict[str, Any] = {}
+    if f.effect in ("temperature_bias", "g_sensitivity", "scale_nonlinearity"):
+        e = {"sensor": f.sensor, "axis": f.axis,
+             "coeff": p["coeff"] if f.axis is not None else p.get("per_axis", p["coeff"])}
+        if f.effect == "temperature_bias":
+            e["T0"] = T0 if T0 is not None else 25.0
+        if f.effect == "g_sensitivity":
+            e.pop("sensor")
+    elif f.effect == "bias_drift":
+        e = {"sensor": f.sensor, "axis": f.axis, "density": p["density"]}
+    elif f.effect == "lever_arm":
+        e = {"x": p["x"], "y": p["y"], "z": p["z"]}
+    elif f.effect == "time_offset":
+        e = {"sensor": f.sensor, "seconds": p["seconds"]}
+    elif f.effect == "saturation":
+        e = {"sensor": f.sensor, "limit": p["limit"]}
+    elif f.effect == "axis_sign":
+        e = {"sensor": f.sensor, "axis": f.axis}
+    return e
+
+
+def _handedness(logs: list[ImuData], cal: Calibration, segs: list[Any]) -> Handedness | None:
+    """Run the handedness test on the longest log with motion (raw frames, biases from the batch)."""
+    best = None
+    for d, sg in zip(logs, segs, strict=True):
+        if d.n_imu < 200:
+            continue
+        rests = [d.gyro[iv.i0:iv.i1] for iv in sg.rests]
+        bias = np.median(np.concatenate(rests), axis=0) if rests else (
+            cal.gyro.bias if cal.gyro is not None else np.median(d.gyro, axis=0))
+        a = d.acc - (cal.accel.bias if cal.accel is not None else 0.0)
+        m = None
+        if d.n_mag > 100 and cal.mag is not None:
+            mm = d.mag - cal.mag.bias
+            m = np.column_stack([np.interp(d.t_imu, d.t_mag, mm[:, k]) for k in range(3)])
+        s = prepare(d, cal, sg.rests)
+        h = find_axis_sign(s.t, d.gyro, bias, a, m, s.rate)
+        if h is not None and (best is None or d.n_imu > best[0]):
+            best = (d.n_imu, h)
+    return best[1] if best else None
+
+
+@dataclass
+class _Given:
+    """A baseline given from outside (the unit's campaign calibration) with this session's segmentation."""
+
+    calibration: Calibration
+    segmentations: list[Any]
+    warnings: list[str]
+
+
+def _baseline(logs: list[ImuData], g: float, calibration: Calibration | None) -> Any:
+    if calibration is None:
+        return run_batch(logs, g=g)
+    floors = noise_floors(logs)
+    return _Given(calibration, [segment(d, floors) for d in logs], ["baseline calibration given (not fitted here)"])
+
+
+def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = True,
+             calibration: Calibration | None = None) -> Diagnosis:
+    """Model-discrepancy discovery over the logs of one sensor unit (module docstring).
+
+    ``seed`` seeds the re-simulation's noise; ``check`` runs stage 5 (the extended simulator against the
+    measured statistics); ``calibration``: use this baseline (e.g. the unit's campaign calibration, for a
+    session too short or too still to calibrate on its own) instead of running the batch on ``logs``.
+    Raises FitError when the batch cannot calibrate anything.
+    """
+    t_start = time.perf_counter()
+    timing: dict[str, float] = {}
+    logs = [d for d in logs if d.n_imu > 0]
+    if not logs:
+        raise FitError("no IMU samples in the logs")
+    untestable: list[str] = []
+    rng = np.random.default_rng(seed)
+    findings: list[Finding] = []
+    # -- 1. baseline, handedness, rails ---------------------------------------------------------------
+    res = _baseline(logs, g, calibration)
+    timing["batch"] = time.perf_counter() - t_start
+    hand = _handedness(logs, res.calibration, res.segmentations)
+    flip: Finding | None = None
+    if hand is not None and hand.sensor is not None:
+        from ..extensions import correct
+
+        ext = {"axis_sign": {"sensor": hand.sensor, "axis": hand.axis}}
+        before = res
+        logs = [correct(d, ext) for d in logs]
+        res = run_batch(logs, g=g) if calibration is None else _baseline(logs, g, calibration)
+        flip = Finding("axis_sign", hand.sensor, hand.axis, 0.0, True, {}, {}, hand.evidence)
+        flip.parameters = {"rate_map_angles_deg": hand.angles_deg}
+        flip._before = before  # type: ignore[attr-defined]
+    elif hand is None:
+        untestable.append("axis_sign: too little rotation (|ω| > 0.3 rad/s) to compare the sensors' handedness")
+    cal = res.calibration
+    sats: list[Saturated] = []
+    exclude: list[Array | None] = [None] * len(logs)
+    for sensor, key in (("gyro", "gyro"), ("accel", "acc")):
+        allraw = np.concatenate([getattr(d, key) for d in logs])
+        st = find_saturation(allraw, sensor)
+        if st is not None:
+            sats.append(st)
+    if sats:
+        for i, d in enumerate(logs):
+            m = np.zeros(d.n_imu, bool)
+            for st in sats:
+                raw = d.gyro if st.sensor == "gyro" else d.acc
+                m |= (np.abs(raw) >= st.limit * (1 - 1e-9)).any(axis=1)
+            # a clipped rate or force spoils the kinematic rows around it (smoothing, integration)
+            k = 5
+            exclude[i] = np.convolve(m.astype(float), np.ones(2 * k + 1), mode="same") > 0
+    # -- 2. residual channels, measured and re-simulated -------------------------------------------
+    t0 = time.perf_counter()
+    designs = _designs(logs, cal, res.segmentations, g, exclude)
+    if not designs:
+        raise FitError("no log long enough to diagnose (≥ 50 IMU samples)")
+    an = analyse(designs, cal)
+    timing["analyse"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sim_logs = []
+    for d in designs:
+        src = logs[d.sid]
+        sim_logs.append(resimulate(d.s, d.clean, cal, src, rng))
+    null_designs = []
+    for d, sl in zip(designs, sim_logs, strict=True):
+        s = prepare(sl, cal, d.s.rests)
+        s.restamped = d.s.restamped
+        null_designs.append(Design(s, g, d.sid))
+    null = analyse(null_designs, cal, only=[c.key for c in an.cands])
+    timing["null"] = time.perf_counter() - t0
+    # -- 3. forward selection ------------------------------------------------------------------------
+    n = an.problem.n
+    model = ["nuisance"]
+    chosen: list[str] = []
+    cond: dict[str, Any] = dict(an.first)
+    thr = {k: _threshold(_k(an, k, g_), n, null.first[k].loglik_gain) for k, g_ in an.first.items()}
+    while len(chosen) < MAX_EFFECTS:
+        ok = [k for k in cond if k not in chosen and cond[k].loglik_gain > thr[k]]
+        if not ok:
+            break
+        best = max(ok, key=lambda k: cond[k].loglik_gain)
+        chosen.append(best)
+        model = model + an.blocks[best]
+        for k in cond:
+            if k not in chosen:
+                cond[k] = an.score(model, k)
+                thr[k] = _threshold(_k(an, k, cond[k]), n, null.first[k].loglik_gain)
+    # -- 4. findings ------------------------------------------------------------------------------------
+    for k in chosen:
+        rest_model = ["nuisance"] + [b for c in chosen if c != k for b in an.blocks[c]]
+        gk = an.score(rest_model, k)
+        f = _finding(an, rest_model, k, gk, thr[k], null.first[k].loglik_gain, True)
+        f.gain.update(_rms_physical(an, rest_model, k))
+        findings.append(f)
+    others = sorted((k for k in cond if k not in chosen), key=lambda k: -cond[k].loglik_gain)
+    for k in others:
+        findings.append(_finding(an, model, k, cond[k], thr[k], null.first[k].loglik_gain, False))
+    for st in sats:
+        findings.insert(0, _saturation_finding(st, an))
+    if flip is not None:
+        _flip_gain(flip, logs, g)
+        findings.insert(0, flip)
+    # structural findings lead: an inverted axis or a rail is undone/censored before the baseline is fitted,
+    # so every other finding is conditional on them; then the linear effects by held-out gain
+    structural = ("axis_sign", "saturation")
+    findings.sort(key=lambda f: (not f.significant, f.effect not in structural, -f.score if f.significant else 0.0))
+    # -- 5. extended calibration, statistics, simulator check -------------------------------------------
+    T0 = _rest_temperature(designs)
+    exts: dict[str, Any] = {}
+    for f in findings:
+        if f.significant:
+            exts.setdefault(f.effect, []).append(_extension(f, T0))
+    exts = {k: v[0] if len(v) == 1 else v for k, v in exts.items()}
+    ext_cal = cal.replace(extensions=exts)
+    base_beta, _ = an.problem.fit(["nuisance"])
+    r_meas = an.problem.residual(["nuisance"], base_beta)
+    nb, _ = null.problem.fit(["nuisance"])
+    r_sim = null.problem.residual(["nuisance"], nb) * null.problem.sigma[null.problem.ch] / \
+        an.problem.sigma[null.problem.ch]
+    baseline = {
+        "model": "paper",
+        "calibration": cal.to_dict(),
+        "batch_warnings": res.warnings,
+        "rows": {nm: int((an.problem.ch == i).sum()) for i, nm in enumerate(SUBCHANNELS)},
+        "sigma": {nm: float(an.problem.sigma[i]) for i, nm in enumerate(SUBCHANNELS)
+                  if (an.problem.ch == i).any()},
+        "channels_measured": channel_stats(r_meas, an.problem.ch, an.problem.t),
+        "channels_simulated": channel_stats(r_sim, null.problem.ch, null.problem.t),
+        "rest_measured": rest_stats(designs[0]),
+        "rest_simulated": rest_stats(null_designs[0]),
+        "notes": [nt for d in designs for nt in d.s.notes],
+    }
+    untestable += _untestable(designs, an)
+    diag = Diagnosis(baseline, findings, ext_cal, untestable, {}, timing, [d.source for d in logs])
+    diag._parts = (an, null, chosen, model)  # type: ignore[attr-defined]
+    if check and chosen:
+        t0 = time.perf_counter()
+        diag.simulation_check = _simulation_check(an, chosen, r_meas, r_sim, null.problem.ch)
+        timing["check"] = time.perf_counter() - t0
+    timing["total"] = time.perf_counter() - t_start
+    return diag
+
+
+def _rest_temperature(designs: list[Design]) -> float | None:
+    """Mean temperature over the rests the batch took the gyro bias from (the baseline bias belongs to it)."""
+    vals = [d.s.temp[iv.i0:iv.i1] for d in designs for iv in d.s.rests]
+    v = np.concatenate(vals) if vals else np.zeros(0)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else None
+
+
+def _rms_physical(an: Analysis, model: list[str], key: str) -> dict[str, float]:
+    """Held-out RMS before/after on the channels the effect acts on, in the whitened unit (1 = noise)."""
+    P = an.problem
+    cand = next(c for c in an.cands if c.key == key)
+    mask = channel_mask(P, cand.sensor)
+    out = {}
+    for name, mdl in (("heldout_rms_before", model), ("heldout_rms_after", model + an.blocks[key])):
+        ix = P.idx(mdl)
+        pri = P.prior_matrix(mdl, an.priors)
+        r = np.empty(P.n)
+        for f in (0, 1):
+            beta, _ = P._fit(P.G[1 - f], ix, pri)
+            te = P.fold == f
+            r[te] = P.Z[te, -1] - P.Z[te][:, ix] @ beta
+        out[name] = float(np.sqrt(np.mean(r[mask] ** 2))) if mask.any() else float("nan")
+    return out
+
+
+def _saturation_finding(st: Saturated, an: Analysis) -> Finding:
+    """Clipping-aware model: the rows holding a clipped sample are censored instead of fitted. The gain is
+    what those rows cost the baseline's likelihood beyond their expected noise."""
+    n_rail = st.n_rail
+    ev = (f"{n_rail} samples sit exactly at ±{st.limit:.4g} (per axis {st.per_axis}), in flat runs up to "
+          f"{st.longest_run} samples long: readings clipped at the {st.sensor}'s rail.")
+    gain = {"heldout_rms_before": float("nan"), "heldout_rms_after": float("nan"),
+            "loglik_gain": float("nan"), "bic_delta": float("nan")}
+    score = float(n_rail)
+    return Finding("saturation", st.sensor, None, score, True, {"limit": st.limit, "n_clipped": n_rail}, gain, ev,
+                   10.0, 0.0)
+
+
+def _flip_gain(flip: Finding, logs: list[ImuData], g: float) -> None:
+    """Held-out gain of the corrected sign: the baseline's residual with and without the flip undone."""
+    before = flip._before  # type: ignore[attr-defined]
+    try:
+        from ..io.base import ImuData as _I  # noqa: F401
+
+        d0 = _designs([_undo(d, flip) for d in logs], before.calibration, before.segmentations, g)
+        d1 = _designs(logs, before.calibration, before.segmentations, g)
+    except Exception:  # noqa: BLE001 - the comparison is informative only
+        return
+    del d1
+    a0 = analyse(d0, before.calibration, only=[])
+    ll0, rss0, n0 = a0.problem.heldout(["nuisance"])
+    flip.gain = {"heldout_rms_before": float(np.sqrt(rss0 / n0)), "heldout_rms_after": 1.0,
+                 "loglik_gain": float(0.5 * (rss0 - n0)), "bic_delta": float(-(rss0 - n0) + np.log(n0))}
+    flip.score = flip.gain["loglik_gain"]
+
+
+def _undo(d: ImuData, flip: Finding) -> ImuData:
+    from ..extensions import correct
+
+    return correct(d, {"axis_sign": {"sensor": flip.sensor, "axis": flip.axis}})
+
+
+def _untestable(designs: list[Design], an: Analysis) -> list[str]:
+    out = []
+    if not any(d.s.has_temp for d in designs):
+        out.append("temperature_bias: the logs have no temperature column (or it never changes)")
+    if not any(d.chunks for d in designs):
+        out.append("g_sensitivity, bias_drift: no rests, so the gyro bias is seen only through the kinematic rows")
+    if not any(d.mhat is not None for d in designs):
+        out.append("time_offset: no magnetometer, so only the accelerometer's lag against the gyro is measured "
+                   "(a late accel and an early gyro look the same)")
+    moving = sum(int((np.linalg.norm(d.clean["w"], axis=1) > 0.5).sum() / d.s.rate) for d in designs)
+    if moving < 10:
+        out.append(f"lever_arm, scale_nonlinearity, time_offset: only {moving} s of rotation faster than 0.5 rad/s")
+    return out
+
+
+def _simulation_check(an: Analysis, chosen: list[str], r_meas: Array, r_sim: Array,
+                      sim_ch: Array) -> dict[str, Any]:
+    """The simulator with the fitted effects added (their residual rows from the fitted columns, on the same
+    motion) against the per-channel RMS of the baseline residual: measured vs simulated without and with the
+    extension (whitened units)."""
+    P = an.problem
+    model = ["nuisance"] + [b for k in chosen for b in an.blocks[k]]
+    beta, _ = P.fit(model, an.priors)
+    # the fitted effects' share of the measured residual rows, per channel
+    ix_eff = np.concatenate([np.arange(P.blocks[b].start, P.blocks[b].stop) for k in chosen for b in an.blocks[k]])
+    nx = P.idx(["nuisance"]).size
+    effect_rows = P.Z[:, ix_eff] @ beta[nx:]
+    out: dict[str, Any] = {"effects": chosen, "channels": {}}
+    for i, nm in enumerate(SUBCHANNELS):
+        m = P.ch == i
+        ms = sim_ch == i
+        if m.sum() < 12 or ms.sum() < 12:
+            continue
+        rm = float(np.sqrt(np.mean(r_meas[m] ** 2)))
+        rs = float(np.sqrt(np.mean(r_sim[ms] ** 2)))
+        # the extended simulator: the re-simulated noise plus the fitted effect's rows (linear model, same
+        # motion); noise and effect are independent, so their mean squares add
+        rext = float(np.sqrt(rs**2 + np.mean(effect_rows[m] ** 2)))
+        out["channels"][nm] = {"measured_rms": rm, "simulated_rms": rs, "simulated_extended_rms": rext}
+    worst = max(out["channels"].items(), key=lambda kv: kv[1]["measured_rms"] / max(kv[1]["simulated_rms"], 1e-12),
+                default=None)
+    if worst is not None:
+        out["worst_channel"] = worst[0]
+    return out

@@ -1,0 +1,98 @@
+"""The Diagnosis value object and its JSON (contract: ``"schema": "onlinecal.diagnosis/1"``)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..model import Calibration
+
+SCHEMA = "onlinecal.diagnosis/1"
+GAIN_KEYS = ("heldout_rms_before", "heldout_rms_after", "loglik_gain", "bic_delta")
+
+
+def _plain(x: Any) -> Any:
+    """JSON-safe: numpy scalars/arrays to Python, NaN/inf to None."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if np.isfinite(v) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+@dataclass
+class Finding:
+    """One candidate effect: named cause, where, how strongly (score = held-out log-likelihood gain, nats),
+    whether it clears the session's own null, its fitted parameters (the effect spec's keys) and gain."""
+
+    effect: str
+    sensor: str
+    axis: str | None
+    score: float
+    significant: bool
+    parameters: dict[str, Any]
+    gain: dict[str, float]
+    evidence: str
+    threshold: float = float("nan")
+    null_score: float = float("nan")
+
+    def to_dict(self) -> dict[str, Any]:
+        return _plain({"effect": self.effect, "sensor": self.sensor, "axis": self.axis, "score": self.score,
+                       "significant": self.significant, "parameters": self.parameters,
+                       "gain": {k: self.gain.get(k, float("nan")) for k in GAIN_KEYS},
+                       "evidence": self.evidence, "threshold": self.threshold, "null_score": self.null_score})
+
+
+@dataclass
+class Diagnosis:
+    baseline: dict[str, Any]
+    findings: list[Finding]
+    calibration: Calibration  # the baseline model with the significant findings as ``extensions``
+    untestable: list[str] = field(default_factory=list)
+    simulation_check: dict[str, Any] = field(default_factory=dict)
+    timing: dict[str, float] = field(default_factory=dict)
+    sources: list[str] = field(default_factory=list)
+
+    @property
+    def significant(self) -> list[Finding]:
+        return [f for f in self.findings if f.significant]
+
+    @property
+    def verdict(self) -> str:
+        sig = self.significant
+        return sig[0].effect if sig else "none"
+
+    def to_dict(self) -> dict[str, Any]:
+        return _plain({
+            "schema": SCHEMA,
+            "sources": self.sources,
+            "baseline": self.baseline,
+            "findings": [f.to_dict() for f in self.findings],
+            "verdict": self.verdict,
+            "extended_calibration": self.calibration.to_dict(),
+            "simulation_check": self.simulation_check,
+            "untestable": self.untestable,
+            "timing_s": self.timing,
+        })
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, allow_nan=False)
+
+    def save(self, path: str | Path) -> None:
+        p = Path(path)
+        tmp = p.with_name(p.name + ".tmp")
+        tmp.write_text(self.to_json() + "\n")
+        tmp.replace(p)

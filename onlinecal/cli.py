@@ -135,9 +135,12 @@ def _ukf() -> Any:
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
-    if a.jobs is not None or a.executor != "process":
+    if a.jobs is not None or a.executor != "process" or a.scheduler:
         return _replay_fleet(a)
     _ukf()
+    import bisect
+    import itertools
+
     from .fleet import replay_chunked
     from .progress import bar
     from .report import truth_table, write_report
@@ -157,8 +160,14 @@ def cmd_replay(a: argparse.Namespace) -> int:
         init = batch.calibration
     else:
         init = _initial(a, logs)
+    ends = list(itertools.accumulate(d.n_imu for d in logs))
+
+    def show(i: int, n: int) -> None:
+        k = min(bisect.bisect_right(ends, i), len(logs) - 1)
+        pb.set(i, note=f"log {k + 1}/{len(logs)} {Path(logs[k].source).name}" if len(logs) > 1 else None)
+
     with bar(sum(d.n_imu for d in logs), desc="replay", unit="samples") as pb:
-        res = replay_chunked(logs, init, trace_path=a.trace, on_progress=lambda i, n: pb.set(i))
+        res = replay_chunked(logs, init, trace_path=a.trace, on_progress=show)
     _warn(getattr(res, "warnings", []))
     written: list[str] = []
     if report:
@@ -191,6 +200,8 @@ def _replay_fleet(a: argparse.Namespace) -> int:
     if a.report or a.trace:
         raise UsageError("--report and --trace belong to a single replay; with --jobs/--executor every log is "
                          "replayed on its own and reported as one JSON line (--json OUT)")
+    if a.scheduler and a.executor != "dask":
+        raise UsageError("--scheduler is the address of a dask scheduler: use it with --executor dask")
     init: Any = a.init if a.init in ("batch", "none") else _load_cal(a.init).to_dict()
     jobs = a.jobs if a.jobs is not None else 1
     to_stdout = a.json == "-"

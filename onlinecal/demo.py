@@ -8,8 +8,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from .batch import run_batch
 from .io import read_log, write_log
 from .model import Calibration
@@ -30,33 +28,12 @@ def _online(logs: list, init: Calibration) -> tuple[Calibration | None, str]:
 
 def _plots(out: Path, data, batch: Calibration) -> list[str]:
     try:
-        import matplotlib
+        from .plots import norms_overview
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        norms_overview(out / "norms.png", data, batch)
     except ImportError:
         return []
-    names = []
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    raw = np.linalg.norm(data.mag, axis=1)
-    cal = np.linalg.norm(batch.mag.apply(data.mag), axis=1) if batch.mag is not None else None
-    ax[0].plot(data.t_mag, raw / raw.mean(), lw=0.5, label="raw / mean")
-    if cal is not None:
-        ax[0].plot(data.t_mag, cal, lw=0.5, label="calibrated")
-    ax[0].set(xlabel="time [s]", ylabel="field norm", title="magnetometer norm")
-    ax[0].legend()
-    a_raw = np.linalg.norm(data.acc, axis=1)
-    ax[1].plot(data.t_imu, a_raw, lw=0.5, label="raw")
-    if batch.accel is not None:
-        ax[1].plot(data.t_imu, np.linalg.norm(batch.accel.apply(data.acc), axis=1), lw=0.5, label="calibrated")
-    ax[1].axhline(9.80665, color="k", lw=0.5)
-    ax[1].set(xlabel="time [s]", ylabel="|a| [m/s²]", title="accelerometer norm", ylim=(8.5, 11))
-    ax[1].legend()
-    fig.tight_layout()
-    fig.savefig(out / "norms.png", dpi=90)
-    plt.close(fig)
-    names.append("norms.png")
-    return names
+    return ["norms.png"]
 
 
 def run_demo(out: Path, seed: int = 0) -> int:

@@ -89,8 +89,6 @@ def test_gyro_nonorthogonality_from_rich_motion(paper1):
     assert all(res.observability[f"gyro.xi.{a}"]["excited"] for a in "xyz")
 
 
-@pytest.mark.xfail(strict=True, reason="open (issue 3): with a cold accelerometer the gyro scale ends at "
-                   "3.0σ on this seed (the accel's cold-start inconsistency leaks into it)")
 def test_cold_gyro_bias_and_scale_within_60s_of_motion(paper1):
     """Cold gyro and accel (mag from the batch): after the 30-s rest and 60 s of motion."""
     sim, batch = paper1
@@ -361,3 +359,134 @@ def test_long_gap_restarts_attitude_and_recovers(short_paper):
     assert _consistent_share(res.calibration, sim.truth.calibration) >= 0.95
     # after the gap the accel and mag innovations are back in their band (the attitude recovered)
     assert res.nis["mag"]["in_band"] >= 0.8
+
+
+def test_cold_accel_at_one_static_pose_stays_consistent():
+    """Cold accelerometer, 30 s of rest in one attitude: one pose says little about the accel (its norm
+    along gravity), and the filter must not claim more. Updating with every block at a drifting
+    linearisation point claimed it (o = a − g/s is a curve): 3–7σ off on every seed before the rest's
+    readings were made one measurement (``OnlineCalibrator._rest_step``)."""
+    from scipy.stats import chi2
+
+    for seed in range(4):
+        sim = simulate("paper", seed, duration=30.0)
+        init = _offset_prior(sim.truth.calibration, seed).replace(accel=None)
+        res = replay([sim.data], init, UKFConfig(init_inflation=1.0))
+        c, t = res.calibration.accel, sim.truth.calibration.accel
+        z = np.concatenate([(c.params()[p] - t.params()[p]) / np.asarray(c.sigma[p]) for p in PARAMS])
+        assert np.all(np.abs(z) < 3), (seed, np.round(z, 2))
+        assert float(z @ z) < chi2.ppf(0.999, 12), (seed, float(z @ z))
+
+
+def test_noise_monitor_ignores_dropped_samples(short_paper):
+    """10 % of the IMU samples dropped at random: the third differences across a missing sample hold the
+    motion over it, not noise; they are left out, so no noise event is raised (the full log raises none)
+    and the result stays within 1σ of the full log's."""
+    sim, init = short_paper
+    d = sim.data
+    rng = np.random.default_rng(4)
+    keep = np.concatenate([[0], 1 + np.flatnonzero(rng.random(d.n_imu - 1) >= 0.1)])
+    dropped = ImuData(d.t_imu[keep], d.gyro[keep], d.acc[keep], d.temp[keep], d.t_mag, d.mag)
+    full = replay([d], init, UKFConfig(init_inflation=1.0))
+    res = replay([dropped], init, UKFConfig(init_inflation=1.0))
+    assert not [e for e in full.events if e["kind"].startswith("noise")]
+    assert not [e for e in res.events if e["kind"].startswith("noise")], res.events[:4]
+    z = []
+    for s in SENSORS:
+        for p in PARAMS:
+            a, b = res.calibration.sensor(s), full.calibration.sensor(s)
+            z += list((a.params()[p] - b.params()[p]) / np.asarray(b.sigma[p]))
+    assert np.max(np.abs(z)) < 1.0, np.round(np.sort(np.abs(z))[-5:], 2)
+
+
+def test_coning_term_of_the_attitude_integration():
+    """The Δt²/12 ω_k−1 × ω_k term halves the attitude error of a coning motion sampled at 100 Hz (against
+    a 20 kHz reference), and propagate_block integrates the same way for every sigma point."""
+    from onlinecal.ukf.propagate import propagate_block
+
+    def omega(t):
+        return np.stack([2 * np.cos(3 * t), 2 * np.sin(3 * t), 1.0 + 0 * t], -1)
+
+    def integ(rate, corr):
+        t = np.linspace(0, 2.0, int(2.0 * rate) + 1)
+        w, dt = omega(t), 1.0 / rate
+        th = 0.5 * (w[1:] + w[:-1]) * dt + corr * dt * dt / 12 * np.cross(w[:-1], w[1:])
+        R = prefix_products(rodrigues(th)[None])[0, -1]
+        return R, t, w
+
+    ref = integ(20000, 0)[0]
+    err = {c: np.linalg.norm(rot_log(ref.T @ integ(100, c)[0])) for c in (0, 1)}
+    assert err[1] < 0.6 * err[0], err
+    R1, t, w = integ(100, 1)
+    x = np.zeros((3, 40))
+    x[:, index("gyro", "scale")] = 1.0
+    out = propagate_block(x, np.eye(3), w, np.diff(t), None, np.arange(1),
+                          correction(x[:1, 3:15]))
+    assert np.allclose(out.R_end[0], R1, atol=1e-12)
+
+
+EXT_CASES = {
+    "temperature_bias:gyro": ("temperature_bias:sensor=gyro,coeff=6e-4", "temperature_bias", "gyro", 6e-4),
+    "temperature_bias:accel": ("temperature_bias:sensor=accel,coeff=5e-3", "temperature_bias", "accel", 5e-3),
+    "g_sensitivity": ("g_sensitivity:coeff=3e-4", "g_sensitivity", "gyro", 3e-4),
+}
+
+
+@pytest.mark.parametrize("ext", list(EXT_CASES))
+def test_extension_state_recovers_hidden_effect(ext):
+    """An extension state converges to the simulated effect within 3σ (to a few % of it), stays within 3σ
+    of zero when the effect is absent, and is reported in the effect vocabulary the rest of the package
+    reads (``onlinecal.extensions``) with its σ in the meta."""
+    from onlinecal.extensions import validate_extensions
+    from onlinecal.sim.effects import parse_effect
+
+    spec, name, sensor, coeff = EXT_CASES[ext]
+    for effects, truth in (([parse_effect(spec)], coeff), ([], 0.0)):
+        sim = simulate("paper", 3, effects=effects)
+        init = _offset_prior(sim.truth.calibration, 3)
+        res = replay([sim.data], init, UKFConfig(init_inflation=1.0, extra_states=(ext,)))
+        e = res.calibration.extensions[name]
+        assert e["sensor"] == sensor and e["axis"] is None
+        k = np.asarray(e["coeff"])
+        sig = np.asarray(res.calibration.meta["online"]["extensions_sigma"][ext])
+        assert np.all(np.abs(k - truth) < 3 * sig), (ext, truth, k, sig)
+        assert np.all(sig < 0.1 * coeff)  # resolved, not merely left at its prior
+        validate_extensions(res.calibration.extensions)
+        cal2 = Calibration.from_json(res.calibration.to_json())
+        assert cal2.extensions == res.calibration.extensions
+
+
+def test_cold_gyro_and_accel_within_60s_of_motion_six_seeds():
+    """The paper's error magnitudes (15 % gyro scale, 0.16 rad/s gyro bias; accel likewise) from a cold
+    start of gyro and accel — prior σ 0.2 and 0.2 rad/s, 0.05 and 0.5 m/s², mag known to a few σ — after
+    the 30-s rest and 60 s of turns to static positions: every bias and scale of both within 3σ, and
+    resolved (scale σ below 1 %), on each of six seeds."""
+    for seed in range(6):
+        sim = simulate("paper", seed, duration=90.0)
+        init = _offset_prior(sim.truth.calibration, seed).replace(gyro=None, accel=None)
+        res = replay([sim.data], init)
+        assert not [e for e in res.events if e["kind"] == "divergence"], (seed, res.events)
+        for s in ("gyro", "accel"):
+            c, t = res.calibration.sensor(s), sim.truth.calibration.sensor(s)
+            for p in ("bias", "scale"):
+                err, sig = c.params()[p] - t.params()[p], np.asarray(c.sigma[p])
+                assert np.all(np.abs(err) < 3 * sig), (seed, s, p, err / sig)
+            assert np.all(np.asarray(c.sigma["scale"]) < 0.01), (seed, s, c.sigma["scale"])
+
+
+@pytest.mark.xfail(strict=True, reason="open (issue 3): with the mag from the batch (a tighter prior than "
+                   "the six-seed test's) the cold gyro and accel end 4.7σ (gyro scale) and 5.4σ (accel) off on "
+                   "seed 0 — 9/12 seeds pass for the accel, 11/12 for the gyro (benchmarks/ukf_stats.py --cold 90 "
+                   "--seeds 12). Cause: the first turns to the static positions (up to 180°) with a 20 % gyro-scale "
+                   "prior leave the attitude uncertain by ~0.5 rad, and the Gaussian update of a precise mag and "
+                   "accel over that range is not consistent even partial (update_damping)")
+def test_cold_start_with_batch_mag_seed0():
+    sim = simulate("paper", 0)
+    batch = run_batch([sim.data]).calibration
+    d = sim.data.slice_imu(0, int(np.searchsorted(sim.data.t_imu, 90.0)))
+    res = replay([d], batch.replace(gyro=None, accel=None))
+    for s in ("gyro", "accel"):
+        c, t = res.calibration.sensor(s), sim.truth.calibration.sensor(s)
+        for p in ("bias", "scale"):
+            err, sig = c.params()[p] - t.params()[p], np.asarray(c.sigma[p])
+            assert np.all(np.abs(err) < 3 * sig), (s, p, err / sig)

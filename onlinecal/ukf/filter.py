@@ -1,16 +1,28 @@
 """The augmented-state UKF: attitude on the manifold plus every calibration term of the paper's model.
 
 Filter: the scaled unscented transform of Wan & van der Merwe (2000) (filterpy's ``MerweScaledSigmaPoints``
-weights and ``unscented_transform``), with the attitude kept as a nominal rotation plus a 3-vector error in
-the state (the error-state / manifold treatment of Crassidis & Markley's USQUE, 2003): sigma points are
-rotation vectors around the nominal, and after each update the mean error is folded into the nominal and
-reset to zero. The state layout is in :mod:`onlinecal.ukf.layout`, the block propagation in
-:mod:`onlinecal.ukf.propagate`.
+weights; the transform itself written out as matrix products), with the attitude kept as a nominal rotation
+plus a 3-vector error in the state (the error-state / manifold treatment of Crassidis & Markley's USQUE,
+2003): sigma points are rotation vectors around the nominal, and after each update the mean error is folded
+into the nominal and reset to zero. The state layout is in :mod:`onlinecal.ukf.layout`, the block
+propagation in :mod:`onlinecal.ukf.propagate`.
 
 One filter step covers a block of IMU samples (``UKFConfig.block_s``, 0.1 s by default): all sigma points
 are propagated through the whole block at once, then one joint update with the block-mean accelerometer
-(weighted by how quasi-static the block is, chi-square gated), the block-mean magnetometer (at its own
-sample times) and, at rest, the zero-rate reading of the gyro.
+(weighted by how quasi-static the block is, chi-square gated) and the block-mean magnetometer (at its own
+sample times). Everything the blocks need from the raw data alone (means, spreads, noise by third
+differences, interpolation weights) is computed for all blocks of a ``feed`` at once.
+
+Inside a rest (raw data still for ``rest_blocks`` blocks) the attitude is held and the rest's readings are
+one measurement — running means of accel, mag and the gyro's zero rate — applied to the state as it was when
+the rest began (:meth:`OnlineCalibrator._rest_step`): a static pose repeated for seconds then says what one
+pose says, not more (a per-block update at a drifting linearisation point claimed more: a cold
+accelerometer ended 3–7σ off after 30 s at rest).
+
+Where the sigma points cannot see a term they get an allowance: the product δM·δo of gyro matrix and bias
+errors (attitude noise, :meth:`OnlineCalibrator._bilinear_var`), and in motion each update is partial
+(``update_damping``: R at least a share of the predicted spread), so that a prior far wider than the
+measurement is narrowed over a few blocks, relinearised in between (the recursive update of Zanetti 2012).
 
 Sigma points come from a Cholesky factor taken with the attitude and gyro states first: the offsets of
 the other states' rows then leave the attitude and gyro terms at the mean, so those sigma points share
@@ -36,11 +48,10 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
+from filterpy.kalman import MerweScaledSigmaPoints
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from ..batch.ellipsoid import FitError, fit_norm_lm
 from ..io.base import ImuData
 from ..model import PARAMS, SENSORS, Calibration, SensorCalibration, decompose
 from ..sim.motion import G0
@@ -56,10 +67,10 @@ from .layout import (
     field_world,
     index,
     model_pair,
-    rodrigues,
+    rodrigues_cm,
     rot_log,
 )
-from .propagate import predict_raw, propagate_block
+from .propagate import interp_weights, propagate_block
 
 Array = NDArray[np.float64]
 
@@ -145,6 +156,11 @@ class UKFConfig:
     rail_min: dict[str, float] = field(default_factory=lambda: {"gyro": 1.0, "accel": 14.7})
     rail_run: int = 40
     extra_states: tuple[str, ...] = ()  # model extensions, keys of EXTENSIONS
+    # partial update in motion: each measurement's R is at least this share of its predicted spread HPHᵀ,
+    # so that one block removes at most 1/(1 + share) of the prior's variance along it (1: half) and the
+    # rest comes from the next blocks, linearised at the improved estimate (0: off). Costs nothing once
+    # converged (HPHᵀ ≪ R); on a cold start it keeps the first large turns from over-narrowing the prior
+    update_damping: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -204,16 +220,163 @@ def hold_sigma(q: float, sigma_n: float) -> float:
     return q / math.sqrt(12.0) * math.exp(-sigma_n / q)
 
 
-def _third_diff_var(v: Array) -> float:
-    """Per-sample white-noise variance from the third differences of v (N, 3): median |Δ³v|² / (3·20·0.789).
+def third_diff_var(v: Array, t: Array, seg: Array, n_seg: int, min_windows: int = 3) -> Array:
+    """Per-segment white-noise variance from third differences: median |Δ³v|² / (3·20·0.789), (n_seg,).
 
-    Δ³ of white noise has variance 20σ² per axis; a smooth motion's own third difference (rate‴·Δt³) is
-    far below it at IMU rates. The median makes it robust to a jerk; 0.789 = median of χ²(3) / 3.
+    v (N, 3) samples at times t (N,) s, seg (N,) the segment (filter block) of each sample, ascending.
+    Δ³ of white noise on a regular grid has variance 20σ² per axis; a smooth motion's own third
+    difference (rate‴·Δt³) is far below it at IMU rates. The median makes it robust to a jerk;
+    0.789 = median of χ²(3) / 3. Only windows of 4 samples inside one segment whose 3 intervals agree
+    within 1.5× count: across a dropped sample the difference is not the white-noise Δ³ (the motion
+    over the missing interval enters it), so a log with gaps would read as noisy. NaN where a segment
+    has fewer than ``min_windows`` such windows.
     """
-    if v.shape[0] < 6:
-        return math.nan
+    out = np.full(n_seg, math.nan)
+    if v.shape[0] < 4:
+        return out
     d3 = (v[3:] - v[:-3]) - 3 * (v[2:-1] - v[1:-2])
-    return float(np.median(np.einsum("ij,ij->i", d3, d3))) / (3 * 20.0 * 0.7888)
+    s = np.einsum("ij,ij->i", d3, d3)
+    h = np.diff(t)
+    h3 = np.stack([h[:-2], h[1:-1], h[2:]])
+    ok = (seg[3:] == seg[:-3]) & (h3.max(axis=0) <= 1.5 * h3.min(axis=0))
+    sv, sg = s[ok], seg[3:][ok]
+    cnt = np.bincount(sg, minlength=n_seg)
+    good = cnt >= min_windows
+    if not good.any():
+        return out
+    vals = sv[np.lexsort((sv, sg))]  # grouped by segment (ascending), sorted within
+    off = np.concatenate([[0], np.cumsum(cnt)[:-1]])[good]
+    c = cnt[good]
+    out[good] = 0.5 * (vals[off + (c - 1) // 2] + vals[off + c // 2]) / (3 * 20.0 * 0.7888)
+    return out
+
+
+def _seg_mean_std(v: Array, lo: Array, cnt: Array) -> tuple[Array, Array]:
+    """Mean and standard deviation (ddof 0) per axis of the segments [lo, lo + cnt) of v (N, 3), which
+    follow each other without holes; (n_seg, 3) each, NaN for empty segments. Sums per segment
+    (np.add.reduceat), so a segment's figures do not depend on where the buffer it sits in starts."""
+    ns = lo.shape[0]
+    mean = np.full((ns, 3), math.nan)
+    std = np.full((ns, 3), math.nan)
+    ne = cnt > 0
+    if not ne.any():
+        return mean, std
+    c_n = cnt[ne]
+    s0 = int(lo[ne][0])
+    vv = v[s0 : s0 + int(c_n.sum())]
+    starts = np.concatenate([[0], np.cumsum(c_n)[:-1]])
+    m = np.add.reduceat(vv, starts, axis=0) / c_n[:, None]
+    dv = vv - np.repeat(m, c_n, axis=0)
+    mean[ne] = m
+    std[ne] = np.sqrt(np.add.reduceat(dv * dv, starts, axis=0) / c_n[:, None])
+    return mean, std
+
+
+@dataclass
+class _Blocks:
+    """Raw-data figures of a run of consecutive filter blocks, computed for all of them at once (so the
+    per-block work of the filter is only the filter): block b holds IMU samples [lo[b], hi[b]) and mag
+    samples [mlo[b], mhi[b]) of the buffers; w_ext (N + 1, 3) the raw rates with the last one filtered
+    before them, dt (N,) the length of the interval ending at each IMU sample; per block the means and
+    spreads (n_b, 3), the third-difference noise variances (n_b,), the jerk term Σ|Δ²ω·Δt/4|² and its count, the largest
+    |reading| per axis; per mag sample its interpolation index into [t_prev, t] and fraction."""
+
+    lo: Array
+    hi: Array
+    mlo: Array
+    mhi: Array
+    w_ext: Array
+    dt: Array
+    w_mean: Array
+    w_std: Array
+    a_mean: Array
+    a_std: Array
+    m_mean: Array
+    m_std: Array
+    var3: dict[str, Array]
+    jerk: Array
+    jerk_n: Array
+    w_absmax: Array
+    a_absmax: Array
+    m_j: Array
+    m_frac: Array
+
+
+_IU = np.triu_indices(3)
+
+
+def ellipsoid_gn(x: Array, o0: Array, M0: Array, max_iter: int = 40,
+                 reject_sigma: float = 5.0) -> tuple[Array, Array, Array, float]:
+    """Geometric ellipsoid fit ‖M (x − o)‖ = 1 (Zhang et al. eq. 17) by Levenberg–Marquardt with the
+    analytic Jacobian; o (3,) and a symmetric M (its 6 upper-triangle entries) as the batch fit has them.
+
+    r_i = ‖y_i‖ − 1 with y_i = M d_i, d_i = x_i − o, n_i = y_i/‖y_i‖: ∂r_i/∂o = −M n_i and
+    ∂r_i/∂M_jk = n_j d_k + n_k d_j (j < k), n_j d_j (j = k). x (N, 3) raw samples; o0, M0 the start (a
+    sphere fit). One outlier rejection at ``reject_sigma`` × MAD, then a refit. Returns (o, M, cov (9, 9)
+    of (o, upper triangle of M) from the Gauss–Newton normal matrix and the residual variance, residual
+    rms). A fixed iteration budget keeps the cost bounded (a few ms) where the data do not carry an
+    ellipsoid; the caller rejects such fits by their covariance.
+    """
+    jj, kk = _IU
+    off = (jj != kk).astype(float)
+
+    def resid_jac(p: Array, pts: Array) -> tuple[Array, Array]:
+        o = p[:3]
+        M = np.zeros((3, 3))
+        M[_IU] = p[3:]
+        M = M + np.triu(M, 1).T
+        d = pts - o
+        y = d @ M
+        ny = np.sqrt(np.einsum("ij,ij->i", y, y))
+        nv = y / ny[:, None]
+        J = np.empty((pts.shape[0], 9))
+        J[:, :3] = -(nv @ M)
+        J[:, 3:] = nv[:, jj] * d[:, kk] + off * nv[:, kk] * d[:, jj]
+        return ny - 1.0, J
+
+    def solve(p: Array, pts: Array) -> Array:
+        lam = 1e-3
+        r, J = resid_jac(p, pts)
+        cost = float(r @ r)
+        for _ in range(max_iter):
+            A = J.T @ J
+            g = J.T @ r
+            try:
+                step = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
+            except np.linalg.LinAlgError:
+                break
+            p_new = p + step
+            r_new, J_new = resid_jac(p_new, pts)
+            c_new = float(r_new @ r_new)
+            if np.isfinite(c_new) and c_new < cost:
+                done = cost - c_new < 1e-12 * cost
+                p, r, J, cost = p_new, r_new, J_new, c_new
+                lam = max(lam / 10.0, 1e-12)
+                if done:
+                    break
+            else:
+                lam *= 10.0
+                if lam > 1e8:
+                    break
+        return p
+
+    p = solve(np.concatenate([o0, M0[_IU]]), x)
+    keep = np.ones(x.shape[0], bool)
+    if x.shape[0] >= 36:
+        r, _ = resid_jac(p, x)
+        mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+        keep = np.abs(r) <= max(reject_sigma * mad, 1e-12)
+        if keep.sum() >= 9 and not keep.all():
+            p = solve(p, x[keep])
+    r, J = resid_jac(p, x[keep])
+    s2 = float(r @ r) / max(1, int(keep.sum()) - 9)
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        cov = np.full((9, 9), np.inf)
+    M = np.zeros((3, 3))
+    M[_IU] = p[3:]
+    return p[:3], M + np.triu(M, 1).T, cov, math.sqrt(float(np.mean(r * r)))
 
 
 class OnlineCalibrator:
@@ -297,6 +460,7 @@ class OnlineCalibrator:
         if "gyro" in self._hold_slice:
             dyn[self._hold_slice["gyro"]] = True  # a held gyro reading is integrated with its offset
         self._perm = np.concatenate([np.flatnonzero(dyn), np.flatnonzero(~dyn)])
+        self._perm_id = bool(np.array_equal(self._perm, np.arange(n)))
         nd = int(dyn.sum())
         self._dyn_pts = np.concatenate([[0], np.arange(1, nd + 1), np.arange(n + 1, n + nd + 1)])
         self._consider = self._consider_mask()
@@ -443,6 +607,8 @@ class OnlineCalibrator:
         self._prev_means: tuple[Any, Any, Any] | None = None
         self._rest_count = 0
         self._still = False
+        self._rest_acc: dict[str, Any] | None = None  # the running rest (:meth:`_rest_step`)
+        self._hold_new = False
         self._held = {"accel": False, "mag": False}
         self._nis = {s: {"sum": 0.0, "n": 0, "windows": [], "bad_run": 0, "rejected": 0, "updates": 0}
                      for s in ("accel", "mag")}
@@ -454,7 +620,8 @@ class OnlineCalibrator:
     def _spec_noise(self) -> dict[str, float]:
         """Per-sample σ of the raw readings from the specs (white noise + the sensor's own quantisation)."""
         r = self._rate or 100.0
-        key = (r, float(self.x[SENSOR_SLICE["mag"].start + 3 : SENSOR_SLICE["mag"].start + 6].sum()))
+        s0 = SENSOR_SLICE["mag"].start + 3
+        key = (r, float(self.x[s0] + self.x[s0 + 1] + self.x[s0 + 2]))
         if getattr(self, "_spec_key", None) == key:
             return dict(self._spec_cache)
         self._spec_key = key
@@ -466,10 +633,11 @@ class OnlineCalibrator:
         }
         return dict(self._spec_cache)
 
-    def _noise(self) -> dict[str, float]:
-        """Per-sample σ used by the filter: the spec's, the format's re-quantisation (q²/12, white part)
-        and, where the measured noise is far above the spec, scaled to the measured level."""
-        n = self._spec_noise()
+    def _noise(self, spec: dict[str, float] | None = None) -> dict[str, float]:
+        """Per-sample σ used by the filter: the spec's (``spec``, :meth:`_spec_noise`), the format's
+        re-quantisation (q²/12, white part) and, where the measured noise is far above the spec, scaled to
+        the measured level."""
+        n = dict(spec) if spec is not None else self._spec_noise()
         q = self._q or {}
         for s in SENSORS:
             if q.get(s + "_requant"):
@@ -482,22 +650,37 @@ class OnlineCalibrator:
         """Raw magnitude of the unit field: 1 / mean mag scale."""
         return float(1.0 / np.mean(self.x[SENSOR_SLICE["mag"]][3:6]))
 
-    def _process_noise(self, dt: float, L: int) -> Array:
-        """Diagonal of Q for one block of ``L`` samples lasting ``dt`` s.
+    def _process_noise(self, dt: float, sigma_gyr: float) -> Array:
+        """Diagonal of Q for one block lasting ``dt`` s; ``sigma_gyr`` the gyro's per-sample σ (rad/s).
 
-        Attitude: angle random walk of the gyro, σ_gyr·Δt per sample, L samples (rad²), in every axis.
+        Attitude: angle random walk of the gyro, σ_gyr/r per sample for the r·dt samples the block spans
+        (rad², every axis; by its duration, so that dropped samples do not shrink it).
         Calibration: random walk, density × ``rw_factor`` per √s (bias), density/full-scale × ``rw_factor``
         (dimensionless terms) — a slow drift allowance set from the specs, not tuned per log. Extensions:
         their prior σ × ``rw_factor`` per √s. Hold offsets: none (a held value's error is constant).
         """
         r = self._rate or 100.0
-        q = self._cal_rw().copy() * dt
-        q[ATT] = L * (self._noise()["gyro"] / r) ** 2
+        q = self._cal_rw() * dt
+        q[ATT] = dt * r * (sigma_gyr / r) ** 2
         return q
+
+    def _bilinear_var(self) -> Array:
+        """Variance (rad²/s², per body axis) of the rate error the unscented transform leaves out: the
+        product δM·δo of the gyro's matrix and bias errors in ω = M (w − o) (eq. 1). Its sigma points move
+        M or o, never both, so the product — second order, but 0.04 rad/s for a cold start's 20 % × 0.2
+        rad/s — is invisible to them; unmodelled, the attitude drift it causes reads as information on the
+        scale (a bilinear term linearised at a wrong bias). Σ_j σ²(M_ij) σ²(o_j), with σ(M_ii) the scale's
+        σ and σ(M_ij) that of the axis angles; vanishes once the bias is known (a rest)."""
+        sig = np.sqrt(np.diag(self.P)[SENSOR_SLICE["gyro"]])
+        s_o, s_s = sig[0:3], sig[3:6]
+        s_ang = np.maximum(sig[6:9], sig[9:12]).max()
+        v_o = s_o * s_o
+        return s_s * s_s * v_o + s_ang**2 * (v_o.sum() - v_o)
 
     def _cal_rw(self) -> Array:
         """Random-walk variance per second of every state (attitude entries 0)."""
-        key = (self.n, round(self._mag_unit(), 6))
+        s0 = SENSOR_SLICE["mag"].start + 3
+        key = (self.n, round(3.0 / (self.x[s0] + self.x[s0 + 1] + self.x[s0 + 2]), 6))  # the mag unit
         if getattr(self, "_rw_key", None) == key:
             return self._rw_cache
         c = self.config
@@ -514,14 +697,14 @@ class OnlineCalibrator:
         self._rw_key, self._rw_cache = key, q
         return q
 
-    def _update_noise_level(self, sensor: str, v: Array, t: float) -> None:
-        """Measured per-sample noise against the spec (third differences, smoothed); raises the sensor's
-        noise and says so when it is far above, and returns to the spec when it comes back."""
-        var = _third_diff_var(v)
+    def _update_noise_level(self, sensor: str, var: float, t: float, spec: float) -> None:
+        """Measured per-sample noise ``var`` (third differences of the block, :func:`third_diff_var`)
+        against the spec, smoothed over ``noise_tau_blocks``; raises the sensor's noise and says so when
+        it is far above, and returns to the spec when it comes back. NaN (too few regular samples): no
+        change."""
         if not math.isfinite(var):
             return
         c = self.config
-        spec = self._spec_noise()[sensor]
         q = self._q or {}
         if q.get(sensor + "_requant"):
             spec = math.hypot(spec, q[sensor] / math.sqrt(12.0))
@@ -609,8 +792,9 @@ class OnlineCalibrator:
         self._rest_count = 0
 
     def flush(self) -> None:
-        """Process the IMU samples still buffered as one (short) block."""
+        """Process the IMU samples still buffered as one (short) block; a running rest is closed."""
         self._process(final=True)
+        self._end_rest()
 
     def _process(self, final: bool = False) -> None:
         t, w, a, T = self._pend_t, self._pend_w, self._pend_a, self._pend_T
@@ -625,72 +809,120 @@ class OnlineCalibrator:
                 self._L = max(1, int(round(self.config.block_s * self._rate)))
             j = int(np.searchsorted(self._pend_tm, t[min(k, t.size) - 1], side="right"))
             self._detect_lattice(w[:k], a[:k], self._pend_m[:j])
-        L = self._L
         tm, mm = self._pend_tm, self._pend_m
-        i = 0
-        n = t.size
         max_gap = self.config.max_gap_s
+        # filter blocks: L samples each, cut at a gap longer than max_gap (the block ends before it)
+        L, n = self._L, t.size
+        cut = np.flatnonzero(np.diff(t) > max_gap)
+        bounds: list[tuple[int, int]] = []
+        i = g = 0
         while n - i >= L or (final and n - i > 0):
             j = min(i + L, n)
+            while g < cut.size and cut[g] < i:
+                g += 1
+            if g < cut.size and cut[g] < j - 1:
+                j = int(cut[g]) + 1
+            bounds.append((i, j))
+            i = j
+        if not bounds:
+            return
+        B = self._block_stats(t, w, a, tm, mm, bounds)
+        for b, (i, j) in enumerate(bounds):
             tb = t[i:j]
             t0 = self._t_last if self._att_ok and self._t_last is not None else None
-            gaps = np.diff(tb) > max_gap
             if self._t_last is not None and tb[0] - self._t_last > max_gap:
                 gap = float(tb[0] - self._t_last)
                 self._event("gap", f"IMU gap of {gap:.3f} s: attitude restarted, calibration drift "
                                    "allowance for the gap added", tb[0])
+                self._end_rest()
                 self.P[np.diag_indices(self.n)] += self._cal_rw() * gap
                 self._att_ok = False
                 self._prev_means = None
                 self._rest_count = 0
                 t0 = None
-            if gaps.any():
-                j = i + int(np.argmax(gaps)) + 1  # process up to the gap
-                tb = t[i:j]
-            # mag samples belonging to this block
-            k = int(np.searchsorted(tm, tb[-1], side="right"))
-            lo = 0
-            if t0 is not None:
-                lo = int(np.searchsorted(tm, t0, side="right"))
-            tmb, mb = tm[lo:k], mm[lo:k]
-            tm, mm = tm[k:], mm[k:]
+            ml, mh = int(B.mlo[b]), int(B.mhi[b])
+            tmb, mb = tm[ml:mh], mm[ml:mh]
             if self._q is not None and "mag" not in self._q and mb.shape[0]:
                 self._q_mag_buf += mb.tolist()
                 if len(self._q_mag_buf) >= 16:
                     self._q["mag"] = value_lattice(np.asarray(self._q_mag_buf))
                     self._apply_lattice(("mag",))
                     self._q_mag_buf = []
-            clip = self._clipped(w[i:j], a[i:j], float(tb[-1]))
+            clip = self._clipped(w[i:j], a[i:j], float(tb[-1]), B.w_absmax[b], B.a_absmax[b])
             if clip["gyro"]:
                 # a clipped gyro turns the attitude by less than the body did: nothing of this block is
                 # used, and the attitude restarts from the accel (and mag) once the gyro is off the rail
+                self._end_rest()
                 self._att_ok = False
             elif t0 is None:
+                self._end_rest()
                 self._init_attitude(tb, w[i:j], a[i:j], tmb, mb)
             else:
-                self._step(tb, w[i:j], a[i:j], T[i:j], tmb, mb, clip)
+                self._step(B, b, t, a, T, tm, mm, clip)
             self._t_last = float(tb[-1])
             self._w_last = w[j - 1].copy()
             self._n_imu += j - i
-            i = j
+        i, k = bounds[-1][1], int(B.mhi[-1])
         self._pend_t, self._pend_w, self._pend_a, self._pend_T = t[i:], w[i:], a[i:], T[i:]
-        self._pend_tm, self._pend_m = tm, mm
+        self._pend_tm, self._pend_m = tm[k:], mm[k:]
 
-    def _clipped(self, w: Array, a: Array, t: float) -> dict[str, bool]:
+    def _block_stats(self, t: Array, w: Array, a: Array, tm: Array, m: Array,
+                     bounds: list[tuple[int, int]]) -> _Blocks:
+        """Everything the blocks ``bounds`` need from the raw data alone, for all of them at once."""
+        lo = np.array([b[0] for b in bounds], dtype=np.intp)
+        hi = np.array([b[1] for b in bounds], dtype=np.intp)
+        nb, end = lo.size, int(hi[-1])
+        cnt = hi - lo
+        tt, ww, aa = t[:end], w[:end], a[:end]
+        seg = np.repeat(np.arange(nb), cnt)
+        # mag samples of each block: after the previous block's last sample (for the first block, after
+        # the last sample already filtered when the attitude runs on), up to the block's last sample
+        mhi = np.searchsorted(tm, tt[hi - 1], side="right")
+        m0 = 0
+        if self._att_ok and self._t_last is not None and tt[0] - self._t_last <= self.config.max_gap_s:
+            m0 = min(int(np.searchsorted(tm, self._t_last, side="right")), int(mhi[0]))
+        mlo = np.concatenate([[m0], mhi[:-1]])
+        mcnt = mhi - mlo
+        # trapezoid rate and interval ending at each sample (sample 0: from the last one filtered)
+        t_prev = self._t_last if self._t_last is not None else float(tt[0])
+        w_prev = self._w_last if self._t_last is not None else ww[0]
+        w_ext = np.vstack([w_prev[None], ww])
+        t_ext = np.concatenate([[t_prev], tt])
+        dt = np.diff(t_ext)
+        # jerk term of the trapezoid: Δt·|Δ²ω|/4 at every sample but the block's last
+        d2 = (w_ext[2:] - 2 * w_ext[1:-1] + w_ext[:-2]) * (dt[1:, None] / 4)
+        e2 = np.concatenate([np.einsum("ij,ij->i", d2, d2), [0.0]])
+        e2[hi - 1] = 0.0
+        jerk = np.add.reduceat(e2, lo)
+        w_mean, w_std = _seg_mean_std(ww, lo, cnt)
+        a_mean, a_std = _seg_mean_std(aa, lo, cnt)
+        m_mean, m_std = _seg_mean_std(m, mlo, mcnt)
+        var3 = {"gyro": third_diff_var(ww, tt, seg, nb), "accel": third_diff_var(aa, tt, seg, nb)}
+        mt = tm[m0 : int(mhi[-1])]
+        mseg = np.repeat(np.arange(nb), mcnt)
+        var3["mag"] = third_diff_var(m[m0 : int(mhi[-1])], mt, mseg, nb)
+        # interpolation of each mag sample between the IMU ticks around it (index into t_ext)
+        jm = np.clip(np.searchsorted(t_ext, mt, side="left"), lo[mseg] + 1, hi[mseg])
+        frac = np.clip((mt - t_ext[jm - 1]) / (t_ext[jm] - t_ext[jm - 1]), 0.0, 1.0)
+        return _Blocks(lo, hi, mlo, mhi, w_ext, dt, w_mean, w_std, a_mean, a_std, m_mean, m_std, var3,
+                       jerk, 3 * np.maximum(cnt - 1, 0), np.maximum.reduceat(np.abs(ww), lo, axis=0),
+                       np.maximum.reduceat(np.abs(aa), lo, axis=0), jm - lo[mseg], frac)
+
+    def _clipped(self, w: Array, a: Array, t: float, w_absmax: Array, a_absmax: Array) -> dict[str, bool]:
         """Which sensors read at their ADC rail in this block; an event at the start of every clipped
         stretch. A rail is learnt from ``rail_run`` identical readings in a row (runs carry over block
         boundaries) at a magnitude of at least ``rail_min``: noise makes a reading that is not clipped
-        change within a few samples. Once learnt, any reading at the rail counts as clipped."""
+        change within a few samples. Once learnt, any reading at the rail counts as clipped.
+        ``w_absmax``, ``a_absmax`` (3,) the block's largest |reading| per axis."""
         c = self.config
         out = {"mag": False}
-        for s, v in (("gyro", w), ("accel", a)):
-            av = np.abs(v)
+        for s, v, amax in (("gyro", w, w_absmax), ("accel", a, a_absmax)):
             rail = self._rail.get(s)
-            hit = rail is not None and bool(np.any(av >= np.asarray(rail) * (1 - 1e-9)))
-            carry = self._run.get(s)
-            if float(av.max()) < c.rail_min[s]:
+            hit = rail is not None and bool(np.any(amax >= np.asarray(rail) * (1 - 1e-9)))
+            if float(amax.max()) < c.rail_min[s]:
                 self._run.pop(s, None)
             else:
+                carry = self._run.get(s)
                 new_carry = []
                 for k in range(3):
                     col = v[:, k]
@@ -831,17 +1063,17 @@ class OnlineCalibrator:
         # Refine to the full ellipsoid (eq. 17, geometric fit) where the samples carry it: the soft iron
         # then starts near its value and the first mag updates stay in the UKF's near-linear range.
         try:
-            fit = fit_norm_lm(x, 1.0, o, np.eye(3) / r, model="full")
-            sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))
+            o_e, M_e, cov_e, _ = ellipsoid_gn(x, o, np.eye(3) / r)
+            sd = np.sqrt(np.clip(np.diag(cov_e), 0, None))
             if (np.all(np.isfinite(sd)) and sd[:3].max() < c.mag_fit_max_centre_sigma * r
-                    and sd[3:].max() < 0.01 / r and np.linalg.det(fit.M) > 0):
-                s_e, a_e, xi_e = decompose(fit.M)
-                x_m = np.concatenate([fit.o, s_e, a_e, xi_e])
+                    and sd[3:].max() < 0.01 / r and np.linalg.det(M_e) > 0):
+                s_e, a_e, xi_e = decompose(M_e)
+                x_m = np.concatenate([o_e, s_e, a_e, xi_e])
                 fe = c.mag_ellipsoid_sigma
                 sig = np.concatenate([np.maximum(3 * sd[:3], fe["bias"] * r), np.full(3, fe["scale"] / r),
                                       np.full(3, fe["alpha"]), np.full(3, fe["xi"])])
                 kind = "ellipsoid"
-        except (FitError, ValueError, np.linalg.LinAlgError):
+        except (ValueError, np.linalg.LinAlgError):
             pass
         self.x[sl] = x_m
         self.P[sl, :] = 0.0
@@ -877,46 +1109,51 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------------------------------
     # rest detection
-    def _rest_detect(self, w: Array, a: Array, m: Array, n: dict[str, float]) -> bool:
+    def _rest_detect(self, B: _Blocks, b: int, n: dict[str, float]) -> bool:
         """True once the raw gyro, accel and mag have stood still (within their noise) for
         ``rest_blocks`` blocks: per-axis spread inside the block and change of the block mean against
         the previous block. Works on raw data, so it needs no calibration; a constant-rate turn about
         the vertical without a magnetometer cannot be told from rest (nothing measures it)."""
         c = self.config
-        L = w.shape[0]
-        gm, am = w.mean(axis=0), a.mean(axis=0)
-        mm = m.mean(axis=0) if m.shape[0] else None
+        L = int(B.hi[b] - B.lo[b])
+        n_m = int(B.mhi[b] - B.mlo[b])
+        gm, am = B.w_mean[b], B.a_mean[b]
+        mm = B.m_mean[b] if n_m else None
         k = c.rest_k
         sg, sa = n["gyro"], n["accel"]
-        still = (L >= 3 and bool(np.all(w.std(axis=0) < k * sg)) and bool(np.all(a.std(axis=0) < k * sa)))
+        still = L >= 3 and float(B.w_std[b].max()) < k * sg and float(B.a_std[b].max()) < k * sa
         prev = self._prev_means
         if prev is not None and still:
             d = math.sqrt(2.0 / L)
-            still = bool(np.all(np.abs(gm - prev[0]) < 2 * k * sg * d)
-                         and np.all(np.abs(am - prev[1]) < 2 * k * sa * d))
+            still = (float(np.abs(gm - prev[0]).max()) < 2 * k * sg * d
+                     and float(np.abs(am - prev[1]).max()) < 2 * k * sa * d)
             if still and mm is not None and prev[2] is not None:
-                sm = n["mag"]
-                still = bool(np.all(np.abs(mm - prev[2]) < 2 * k * sm * math.sqrt(2.0 / m.shape[0])))
+                still = float(np.abs(mm - prev[2]).max()) < 2 * k * n["mag"] * math.sqrt(2.0 / n_m)
         self._prev_means = (gm, am, mm if mm is not None else (prev[2] if prev is not None else None))
         self._rest_count = self._rest_count + 1 if still else 0
         self._still = still
         return self._rest_count >= c.rest_blocks
 
-    def _hold_flags(self, a: Array, m: Array, n: dict[str, float]) -> dict[str, bool]:
+    def _hold_flags(self, B: _Blocks, b: int, n: dict[str, float]) -> dict[str, bool]:
         """Whether this block's accel / mag reading is held (its spread within the noise) and, if the
-        reading moved since the previous block, start a new hold offset (a fresh quantisation error)."""
+        reading moved since the previous block, start a new hold offset (a fresh quantisation error).
+        Runs before :meth:`_rest_detect` (``_prev_means`` is the previous block's)."""
         out = {"accel": False, "mag": False}
+        if not self._hold_slice:
+            return out
         prev = self._prev_means
-        for s, v, pi in (("accel", a, 1), ("mag", m, 2)):
-            if s not in self._hold_slice or v.shape[0] < 2:
+        cnt = {"accel": int(B.hi[b] - B.lo[b]), "mag": int(B.mhi[b] - B.mlo[b])}
+        for s, mean, std, pi in (("accel", B.a_mean[b], B.a_std[b], 1), ("mag", B.m_mean[b], B.m_std[b], 2)):
+            if s not in self._hold_slice or cnt[s] < 2:
                 self._held[s] = False
                 continue
             q = (self._q or {}).get(s, 0.0)
-            held = bool(np.all(v.std(axis=0) <= 2.0 * n[s] + 0.5 * q))
+            held = bool(np.all(std <= 2.0 * n[s] + 0.5 * q))
             same = (held and self._held[s] and prev is not None and prev[pi] is not None
-                    and bool(np.all(np.abs(v.mean(axis=0) - prev[pi]) < q + 3 * n[s] * math.sqrt(2.0 / v.shape[0]))))
+                    and bool(np.all(np.abs(mean - prev[pi]) < q + 3 * n[s] * math.sqrt(2.0 / cnt[s]))))
             if not same:
                 self._reset_hold(s)
+                self._hold_new = self._hold_new or held
             self._held[s] = held
             out[s] = held
         return out
@@ -930,13 +1167,16 @@ class OnlineCalibrator:
         c = self.config
         lam = c.sp_alpha**2 * (n + c.sp_kappa) - n
         perm = self._perm
-        U = np.linalg.cholesky((lam + n) * self.P[np.ix_(perm, perm)]).T  # rows: offsets, permuted order
-        D = np.empty((n, n))
-        D[:, perm] = U
+        if self._perm_id:
+            D = np.linalg.cholesky((lam + n) * self.P).T  # rows: offsets
+        else:
+            U = np.linalg.cholesky((lam + n) * self.P[np.ix_(perm, perm)]).T  # rows: offsets, permuted
+            D = np.empty((n, n))
+            D[:, perm] = U
         X = np.empty((2 * n + 1, n))
         X[0] = self.x
-        X[1 : n + 1] = self.x + D
-        X[n + 1 :] = self.x - D
+        np.add(self.x, D, out=X[1 : n + 1])
+        np.subtract(self.x, D, out=X[n + 1 :])
         return X
 
     def _temp_reg(self, T: Array) -> Array:
@@ -950,7 +1190,7 @@ class OnlineCalibrator:
         return np.where(np.isfinite(T), T - self._T0, 0.0)
 
     def _gyro_extra(self, Xd: Array, T: Array, a: Array, held: bool) -> Array | None:
-        """Extra raw gyro bias (S_d, L, 3) per dynamic sigma point and sample: the extensions' terms and,
+        """Extra raw gyro bias (S_d, L + 1, 3) per dynamic sigma point and sample: the extensions' terms and,
         while the gyro reading is held (at rest), its quantisation offset — the same error the
         zero-rate update sees, so that the attitude drift does not read it as bias."""
         ext = self._ext_slice
@@ -967,27 +1207,42 @@ class OnlineCalibrator:
         if "g_sensitivity" in ext:
             f = self._calibrated("accel", a)  # (L, 3) specific force, m/s²
             b += Xd[:, ext["g_sensitivity"]][:, None, :] * f[None]
-        return b
+        # at the L + 1 rate samples of the propagation: the block's first value serves the sample before it
+        return np.concatenate([b[:, :1], b], axis=1)
 
-    def _step(self, t: Array, w: Array, a: Array, T: Array, tm: Array, m: Array,
-              clip: dict[str, bool]) -> None:
-        """One UKF predict + update over the IMU block t (L,), w (L, 3), a (L, 3), T (L,) °C and mag
-        samples tm (M,), m (M, 3)."""
+    def _step(self, B: _Blocks, b: int, t_all: Array, a_all: Array, T_all: Array, tm_all: Array,
+              m_all: Array, clip: dict[str, bool]) -> None:
+        """One UKF predict + update over block ``b`` of ``B``: IMU samples [lo, hi) of the buffers t (s),
+        a (m/s²), T (°C) (the gyro enters through ``B``) and mag samples [mlo, mhi) of tm, m."""
         c = self.config
+        i, j, ml, mh = int(B.lo[b]), int(B.hi[b]), int(B.mlo[b]), int(B.mhi[b])
+        t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
+        tm, m = tm_all[ml:mh], m_all[ml:mh]
         tl = float(t[-1])
-        if m.shape[0] and not self.mag_enabled:
+        n_m = mh - ml
+        mag_before = (self.mag_enabled, self._align_yaw_next)
+        if n_m and not self.mag_enabled:
             self._mag_collect(tm, m)
             self._try_mag_fit(tl)
-        if self.mag_enabled and self._align_yaw_next and m.shape[0]:
+        if self.mag_enabled and self._align_yaw_next and n_m:
             self._align_yaw(tm, m)
-        use_mag = self.mag_enabled and m.shape[0] > 0 and not self._align_yaw_next
-        self._update_noise_level("gyro", w, tl)
-        self._update_noise_level("accel", a, tl)
-        if m.shape[0] >= 6:
-            self._update_noise_level("mag", m, tl)
-        n = self._noise()
-        held = self._hold_flags(a, m, n)
-        rest = self._rest_detect(w, a, m, n)
+        use_mag = self.mag_enabled and n_m > 0 and not self._align_yaw_next
+        spec = self._spec_noise()
+        for s in SENSORS:
+            self._update_noise_level(s, float(B.var3[s][b]), tl, spec[s])
+        n = self._noise(spec)
+        self._hold_new = False
+        held = self._hold_flags(B, b, n)
+        rest = self._rest_detect(B, b, n)
+        zero_rate = rest and self._still
+        acc = self._rest_acc
+        if acc is not None and (not zero_rate or self._hold_new or held != acc["held"]
+                                or mag_before != (self.mag_enabled, self._align_yaw_next)
+                                or use_mag != acc["use_mag"]):
+            self._end_rest()
+        if zero_rate:
+            self._rest_step(B, b, t, T, n, held, use_mag, clip)
+            return
         try:
             X = self._sigma_points()
         except np.linalg.LinAlgError:
@@ -995,24 +1250,34 @@ class OnlineCalibrator:
             return
         L = t.size
         dyn = self._dyn_pts
-        pred = propagate_block(X, self.R_nom, float(self._t_last), self._w_last, t, w,
-                               tm if use_mag else np.zeros(0), dyn,
+        c_mag = None
+        if use_mag:
+            k0 = ml - int(B.mlo[0])
+            c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], L)
+        # every sensor's model for every sigma point that needs it, in one evaluation (eqs. 1–6): the
+        # gyro's for the dynamic points, the accel's and the mag's for all
+        S, Sd = X.shape[0], dyn.shape[0]
+        o_all, M_all, Minv_all = model_pair(np.concatenate(
+            [X[dyn, SENSOR_SLICE["gyro"]], X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
+        pred = propagate_block(X, self.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, dyn, (o_all[:Sd], M_all[:Sd]),
                                self._gyro_extra(X[dyn], T, a, self._still))
         R_nom = pred.R_end[0]  # sigma point 0 is the mean (zero attitude error)
         # the other points share the mean's attitude history: their error stays exactly 0
-        X[dyn, ATT] = rot_log(R_nom.T @ pred.R_end[dyn])
+        X[dyn, ATT] = rot_log(R_nom.T @ pred.R_end)
         Wm, Wc = self._Wm, self._Wc
         dt_blk = float(t[-1] - self._t_last)
-        q = self._process_noise(dt_blk, L)
+        q = self._process_noise(dt_blk, n["gyro"])
         # trapezoid error where the rate is not smooth (a jerk, a step): Δt·|Δ²ω|/4 per sample, added to
-        # the attitude noise
-        w3 = np.vstack([self._w_last[None], w])
-        if w3.shape[0] >= 3:
-            d2 = (w3[2:] - 2 * w3[1:-1] + w3[:-2]) * (np.diff(t)[:, None] if t.size > 1 else dt_blk) / 4
-            # less what the white noise alone gives (E[Δ²n]² = 6σ²), so that rest and smooth motion add ~0
-            noise = d2.size * 6.0 * (n["gyro"] * dt_blk / L / 4) ** 2
-            q[ATT] += max(0.0, float(np.sum(d2 * d2)) - noise) / 3.0
-        x_pred, P_pred = unscented_transform(X, Wm, Wc, np.diag(q))
+        # the attitude noise, less what the white noise alone gives (E[Δ²n]² = 6σ²), so that rest and
+        # smooth motion add ~0
+        if L >= 2:
+            noise = float(B.jerk_n[b]) * 6.0 * (n["gyro"] * dt_blk / L / 4) ** 2
+            q[ATT] += max(0.0, float(B.jerk[b]) - noise) / 3.0
+        q[ATT] += self._bilinear_var() * dt_blk**2
+        x_pred = Wm @ X
+        Y = X - x_pred
+        P_pred = (Y.T * Wc) @ Y  # the unscented transform (Wan & van der Merwe 2000), + Q below
+        P_pred.flat[:: P_pred.shape[0] + 1] += q
         self.R_nom = R_nom
         ext = self._ext_slice
         T_reg = float(np.mean(self._temp_reg(T))) if ("temperature_bias:gyro" in ext
@@ -1020,16 +1285,14 @@ class OnlineCalibrator:
 
         # measurements: block means
         zs, Zs, rs, names = [], [], [], []
-        a_mean = a.mean(axis=0)
-        o_g0, M_g0 = correction(self.x[None, SENSOR_SLICE["gyro"]])
-        rate = float(np.linalg.norm(M_g0[0] @ (w.mean(axis=0) - o_g0[0])))
+        a_mean = B.a_mean[b]
+        rate = float(np.linalg.norm(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr)))
         # quasi-static weighting: the part of ||f| − g| that neither the noise nor the calibration's own
         # uncertainty (spread of |f| over the sigma points) explains, and the centripetal term of an
         # unknown lever arm, both add to the accel variance (adaptive R). Judged against the calibration's
         # σ, not its mean alone, so that a calibration error is not taken for motion.
-        o_a, M_a, Minv_a = model_pair(X[:, SENSOR_SLICE["accel"]])
+        o_a, M_a, Minv_a = o_all[Sd : Sd + S], M_all[Sd : Sd + S], Minv_all[Sd : Sd + S]
         f_all = np.einsum("sij,sj->si", M_a, a_mean - o_a)
-        f_cal = f_all[0]  # sigma point 0 is the mean
         nf = np.sqrt(np.einsum("si,si->s", f_all, f_all))
         nf_mean = float(Wm @ nf)
         var_cal = max(0.0, float(Wc @ (nf - nf_mean) ** 2))
@@ -1039,9 +1302,6 @@ class OnlineCalibrator:
         # √(2g·dev), which the norm does not show otherwise
         var_a = (sig_mean**2 + (c.acc_dev_gain * dev) ** 2 + 2.0 * c.gravity * dev
                  + (c.acc_lever_m * rate**2) ** 2)
-        # static (accel outliers soft-gated instead of dropped): a rest found in the raw data; the norm test
-        # alone cannot see a horizontal acceleration (|f| changes only to second order)
-        static = rest
         if not clip["accel"]:
             Za = np.einsum("sij,sj->si", Minv_a, c.gravity * pred.f_body) + o_a  # eq. 1 inverted
             if held["accel"]:
@@ -1053,43 +1313,29 @@ class OnlineCalibrator:
             rs.append(np.full(3, var_a))
             names.append("accel")
         if use_mag and pred.h_body is not None:
-            Zm = predict_raw(X, "mag", pred.h_body)
+            Zm = np.einsum("sij,sj->si", Minv_all[Sd + S :], pred.h_body) + o_all[Sd + S :]  # eq. 1 inverted
             if held["mag"]:
                 Zm = Zm + X[:, self._hold_slice["mag"]]
-            zs.append(m.mean(axis=0))
+            zs.append(B.m_mean[b])
             Zs.append(Zm)
-            rs.append(np.full(3, n["mag"] ** 2 / m.shape[0]))
+            rs.append(np.full(3, n["mag"] ** 2 / n_m))
             names.append("mag")
-        if rest and self._still:
-            # zero-rate pseudo-measurement (the paper's bias from rests, eqs. 34–35, done online): at rest
-            # the raw gyro reads its bias, raw = M⁻¹·0 + o — linear in o, independent of M — plus the
-            # held reading's quantisation offset and the extensions' bias terms
-            s_gyr = float(np.mean(self.x[index("gyro", "scale")]))
-            Zg = X[:, index("gyro", "bias")]
-            if "gyro" in self._hold_slice:
-                Zg = Zg + X[:, self._hold_slice["gyro"]]
-            if "temperature_bias:gyro" in ext:
-                Zg = Zg + X[:, ext["temperature_bias:gyro"]] * T_reg
-            if "g_sensitivity" in ext:
-                Zg = Zg + X[:, ext["g_sensitivity"]] * f_cal
-            zs.append(w.mean(axis=0))
-            Zs.append(Zg)
-            rs.append(np.full(3, n["gyro"] ** 2 / L + (c.rest_rate_sigma / s_gyr) ** 2))
-            names.append("rest")
         if not zs:
             x_new, P_new = x_pred, P_pred
         else:
-            x_new, P_new = self._update(X, x_pred, P_pred, zs, Zs, rs, names, static, tl)
+            # not at rest (rests go to _rest_step): an accel outlier is motion the model lacks, dropped
+            x_new, P_new = self._update(Y, x_pred, P_pred, zs, Zs, rs, names, False, tl, damp=c.update_damping)
         P_new = 0.5 * (P_new + P_new.T)
         # fold the attitude error into the nominal (reset, USQUE)
-        self.R_nom = self.R_nom @ rodrigues(x_new[None, ATT])[0]
+        self.R_nom = self.R_nom @ _rodrigues1(x_new[ATT])
         x_new[ATT] = 0.0
         if self._yaw_free:
             # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone):
             # forget it — marginalise it out and give it back a diffuse σ. A small σ would assert a
             # heading knowledge the data do not hold and leak spurious information into the alphas.
             P_new = self._set_yaw_variance(P_new, c.yaw_free_sigma**2)
-        if not np.all(np.isfinite(x_new)) or not np.all(np.isfinite(P_new)) or np.any(np.diag(P_new) <= 0):
+        if (not np.isfinite(x_new).all() or not np.isfinite(P_new).all()
+                or not (P_new.diagonal() > 0).all()):
             self._diverged("non-finite state or non-positive variance", tl)
             return
         self.x, self.P = x_new, P_new
@@ -1098,49 +1344,219 @@ class OnlineCalibrator:
             self._trace_row(tl)
             self._next_trace = tl + c.trace_every_s
 
-    def _update(self, X: Array, x_pred: Array, P_pred: Array, zs: list[Array], Zs: list[Array],
-                rs: list[Array], names: list[str], static: bool, t: float) -> tuple[Array, Array]:
+    def _rest_step(self, B: _Blocks, b: int, t: Array, T: Array, n: dict[str, float], held: dict[str, bool],
+                   use_mag: bool, clip: dict[str, bool]) -> None:
+        """A block inside a rest: the body does not turn, so the block adds nothing but more samples of the
+        same static readings. The rest's readings are therefore one measurement — their running means
+        (accel, mag, the gyro's zero rate) with σ²/N — applied once to the state as it was when the rest
+        began (plus the process noise of the whole rest), re-done every block as N grows. Exact for a
+        linear model (the mean is sufficient); for the nonlinear one it keeps the linearisation where a
+        single measurement would have it: updating with every block at a drifting linearisation point
+        instead gains spurious information from the same static pose (with a cold accelerometer, its scale
+        and bias along gravity — o = a − g/s, a curve — ended at 5–18σ after 30 s at rest).
+
+        The attitude is held (no gyro integration: the gyro's reading at rest is its bias, measured by the
+        zero-rate update). Ended by :meth:`_end_rest` when the rest ends or anything changes the model."""
+        c = self.config
+        i, j, ml, mh = int(B.lo[b]), int(B.hi[b]), int(B.mlo[b]), int(B.mhi[b])
+        L, n_m = j - i, mh - ml
+        tl = float(t[-1])
+        if not (np.isfinite(self.P).all() and (self.P.diagonal() > 0).all()):
+            # the running rest restarts from its first state, which would hide a broken covariance
+            self._rest_acc = None
+            self._diverged("non-finite or non-positive variance", tl)
+            return
+        acc = self._rest_acc
+        first = acc is None
+        if acc is None:
+            acc = self._rest_acc = {
+                "x": self.x.copy(), "P": self.P.copy(), "R_nom": self.R_nom.copy(), "q": np.zeros(self.n),
+                "held": dict(held), "use_mag": use_mag, "sa": np.zeros(3), "na": 0.0, "sm": np.zeros(3),
+                "nm": 0.0, "sw": np.zeros(3), "nw": 0.0, "sT": 0.0, "nT": 0, "post": {}}
+        ext = self._ext_slice
+        acc["q"] += self._process_noise(float(t[-1] - self._t_last), n["gyro"])
+        # this block's innovation against what the rest so far predicts: the sequential NIS (what a
+        # per-block filter would record), so that the windows fill and judge as before
+        for s_, mean_, ok_, cnt_ in (("accel", B.a_mean[b], not clip["accel"], L), ("mag", B.m_mean[b], use_mag, n_m)):
+            post = acc["post"].get(s_)
+            if post is not None and ok_ and cnt_:
+                nu_ = mean_ - post[0]
+                try:
+                    self._nis_record(s_, float(nu_ @ np.linalg.solve(post[1] + np.eye(3) * n[s_] ** 2 / cnt_, nu_)), tl)
+                except np.linalg.LinAlgError:
+                    pass
+        # running means weighted by each block's information (the noise level may change within a rest)
+        if not clip["accel"]:
+            w_ = L / n["accel"] ** 2
+            acc["sa"] += B.a_mean[b] * w_
+            acc["na"] += w_
+        if use_mag:
+            w_ = n_m / n["mag"] ** 2
+            acc["sm"] += B.m_mean[b] * w_
+            acc["nm"] += w_
+        w_ = L / n["gyro"] ** 2
+        acc["sw"] += B.w_mean[b] * w_
+        acc["nw"] += w_
+        if "temperature_bias:gyro" in ext or "temperature_bias:accel" in ext:
+            acc["sT"] += float(np.sum(self._temp_reg(T)))
+            acc["nT"] += L
+        T_reg = acc["sT"] / max(acc["nT"], 1)
+        x0, P0 = acc["x"], acc["P"] + np.diag(acc["q"])
+        self.x, self.P, self.R_nom = x0.copy(), P0, acc["R_nom"]
+        try:
+            X = self._sigma_points()
+        except np.linalg.LinAlgError:
+            self._rest_acc = None
+            self._diverged("covariance is not positive definite", tl)
+            return
+        S = X.shape[0]
+        Wm, Wc = self._Wm, self._Wc
+        R_s = self.R_nom @ _rodrigues_n(X[:, ATT])  # (S, 3, 3) attitude of every sigma point
+        o_all, M_all, Minv_all = model_pair(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
+        zs, Zs, rs, names = [], [], [], []
+        f_cal = None
+        if acc["na"]:
+            a_mean = acc["sa"] / acc["na"]
+            f_all = np.einsum("sij,sj->si", M_all[:S], a_mean - o_all[:S])
+            f_cal = f_all[0]
+            nf = np.sqrt(np.einsum("si,si->s", f_all, f_all))
+            nf_mean = float(Wm @ nf)
+            var_cal = max(0.0, float(Wc @ (nf - nf_mean) ** 2))
+            sig_mean = 1.0 / math.sqrt(acc["na"])
+            dev = max(0.0, abs(nf_mean - c.gravity) - 3.0 * math.sqrt(sig_mean**2 + var_cal))
+            Za = np.einsum("sij,sj->si", Minv_all[:S], c.gravity * R_s[:, 2, :]) + o_all[:S]
+            if held["accel"]:
+                Za = Za + X[:, self._hold_slice["accel"]]
+            if "temperature_bias:accel" in ext:
+                Za = Za + X[:, ext["temperature_bias:accel"]] * T_reg
+            zs.append(a_mean)
+            Zs.append(Za)
+            rs.append(np.full(3, sig_mean**2 + (c.acc_dev_gain * dev) ** 2 + 2.0 * c.gravity * dev))
+            names.append("accel")
+        if acc["nm"]:
+            dip = X[:, DIP]
+            h_body = np.cos(dip)[:, None] * R_s[:, 1, :] - np.sin(dip)[:, None] * R_s[:, 2, :]
+            Zm = np.einsum("sij,sj->si", Minv_all[S:], h_body) + o_all[S:]
+            if held["mag"]:
+                Zm = Zm + X[:, self._hold_slice["mag"]]
+            zs.append(acc["sm"] / acc["nm"])
+            Zs.append(Zm)
+            rs.append(np.full(3, 1.0 / acc["nm"]))
+            names.append("mag")
+        s_gyr = float(np.mean(self.x[index("gyro", "scale")]))
+        Zg = X[:, index("gyro", "bias")]
+        if "gyro" in self._hold_slice:
+            Zg = Zg + X[:, self._hold_slice["gyro"]]
+        if "temperature_bias:gyro" in ext:
+            Zg = Zg + X[:, ext["temperature_bias:gyro"]] * T_reg
+        if "g_sensitivity" in ext and f_cal is not None:
+            Zg = Zg + X[:, ext["g_sensitivity"]] * f_cal
+        zs.append(acc["sw"] / acc["nw"])
+        Zs.append(Zg)
+        rs.append(np.full(3, 1.0 / acc["nw"] + (c.rest_rate_sigma / s_gyr) ** 2))
+        names.append("rest")
+        Y = X - x0
+        acc["post"] = {}
+        x_new, P_new = self._update(Y, x0, P0, zs, Zs, rs, names, True, tl, record=first, post_out=acc["post"])
+        P_new = 0.5 * (P_new + P_new.T)
+        self.R_nom = self.R_nom @ _rodrigues1(x_new[ATT])
+        x_new[ATT] = 0.0
+        if self._yaw_free:
+            P_new = self._set_yaw_variance(P_new, c.yaw_free_sigma**2)
+        if (not np.isfinite(x_new).all() or not np.isfinite(P_new).all()
+                or not (P_new.diagonal() > 0).all()):
+            self._rest_acc = None
+            self._diverged("non-finite state or non-positive variance", tl)
+            return
+        self.x, self.P = x_new, P_new
+        self._n_blocks += 1
+        if tl >= self._next_trace:
+            self._trace_row(tl)
+            self._next_trace = tl + c.trace_every_s
+
+    def _end_rest(self) -> None:
+        """Close the running rest (:meth:`_rest_step`): its last state stays."""
+        self._rest_acc = None
+
+    def _update(self, Y: Array, x_pred: Array, P_pred: Array, zs: list[Array], Zs: list[Array],
+                rs: list[Array], names: list[str], static: bool, t: float,
+                record: bool = True, post_out: dict[str, Any] | None = None,
+                damp: float = 0.0) -> tuple[Array, Array]:
         """Joint UKF update with the stacked measurements; chi-square gating per sensor (accel outside
         a quasi-static block: dropped; otherwise its R inflated to gate size); consider states get no
-        gain and the covariance update in Joseph-like form stays the true error covariance for any gain."""
+        gain and the covariance update in Joseph-like form stays the true error covariance for any gain.
+        Y (S, n) the sigma points less the predicted mean. ``record``: NIS values enter the windows.
+        ``post_out``: gets, per gated sensor, the measurement the posterior predicts and its covariance
+        (z + (S − R) S⁻¹ ν and (S − R) − (S − R) S⁻¹ (S − R), linearised), for the next block's NIS."""
         Wm, Wc = self._Wm, self._Wc
         z = np.concatenate(zs)
-        Z = np.concatenate(Zs, axis=1)
+        Z = np.hstack(Zs)
         r_diag = np.concatenate(rs)
-        z_pred, S_zz = unscented_transform(Z, Wm, Wc, np.diag(r_diag))
-        Pxz = (X - x_pred).T @ (Wc[:, None] * (Z - z_pred))
+        z_pred = Wm @ Z
+        Zc = Z - z_pred
+        ZW = Zc * Wc[:, None]
+        S_zz = Zc.T @ ZW
+        hph = np.diag(S_zz).copy()
+        S_zz.flat[:: S_zz.shape[0] + 1] += r_diag
+        Pxz = Y.T @ ZW
         nu = z - z_pred
-        keep = np.ones(z.size, bool)
-        for k, s in enumerate(names):
-            if s == "rest":
-                continue
-            sl = slice(3 * k, 3 * k + 3)
+        k_gate = [k for k, s in enumerate(names) if s != "rest"]
+        nis_all = [math.inf] * len(names)
+        if k_gate:
+            S_b = np.stack([S_zz[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] for k in k_gate])
+            nu_b = np.stack([nu[3 * k : 3 * k + 3] for k in k_gate])
             try:
-                nis = float(nu[sl] @ np.linalg.solve(S_zz[sl, sl], nu[sl]))
+                sol = np.linalg.solve(S_b, nu_b[..., None])[..., 0]
+                for kk, k in enumerate(k_gate):
+                    nis_all[k] = float(nu_b[kk] @ sol[kk])
             except np.linalg.LinAlgError:
-                nis = math.inf
+                pass
+        keep = None
+        for k in k_gate:
+            s = names[k]
+            sl = slice(3 * k, 3 * k + 3)
+            nis = nis_all[k]
             gate = self._gates[s]
             if s == "accel" and not static and nis > gate:
                 # motion the model has no term for (linear acceleration): an outlier, not a statistic of
                 # the filter's consistency — dropped and counted, kept out of the NIS windows
+                if keep is None:
+                    keep = np.ones(z.size, bool)
                 keep[sl] = False
                 self._nis[s]["rejected"] += 1
                 continue
-            self._nis_record(s, nis, t)
+            if record:
+                self._nis_record(s, nis, t)
             if nis > gate:
                 # soft gate: inflate R so this update counts no more than a gate-sized one
                 self._nis[s]["rejected"] += 1
                 S_zz[sl, sl] += np.diag(r_diag[sl] * (nis / gate - 1))
-        if not keep.any():
-            return x_pred, P_pred
-        S_k = S_zz[np.ix_(keep, keep)]
-        Pxz_k = Pxz[:, keep]
-        K = np.linalg.solve(S_k, Pxz_k.T).T
+            if post_out is not None:
+                Sk = S_zz[sl, sl]
+                A = Sk - np.diag(r_diag[sl])
+                AS = np.linalg.solve(Sk, A).T  # A S⁻¹ (S, A symmetric)
+                post_out[s] = (z_pred[sl] + AS @ nu[sl], A - AS @ A)
+        S_gain = S_zz
+        if damp > 0:
+            # partial update (``UKFConfig.update_damping``): the gain as if R were at least damp·HPHᵀ;
+            # gating above and the covariance below use the model's own S, so P stays the covariance of
+            # the error left by this (suboptimal) gain
+            S_gain = S_zz.copy()
+            d = np.diag(S_zz) - hph
+            S_gain.flat[:: S_zz.shape[0] + 1] += np.maximum(0.0, damp * hph - d)
+        if keep is not None:
+            if not keep.any():
+                return x_pred, P_pred
+            S_zz = S_zz[np.ix_(keep, keep)]
+            S_gain = S_gain[np.ix_(keep, keep)] if damp > 0 else S_zz
+            Pxz = Pxz[:, keep]
+            nu = nu[keep]
+        K = np.linalg.solve(S_gain, Pxz.T).T
         # Schmidt ("consider") states: the gauge terms are never updated
         K[self._consider] = 0.0
-        x_new = x_pred + K @ nu[keep]
-        KPzx = K @ Pxz_k.T
-        P_new = P_pred - KPzx - KPzx.T + K @ S_k @ K.T
+        x_new = x_pred + K @ nu
+        KPzx = K @ Pxz.T
+        P_new = P_pred - KPzx - KPzx.T + (K @ S_zz) @ K.T
         return x_new, P_new
 
     # ------------------------------------------------------------------------------------------
@@ -1189,6 +1605,7 @@ class OnlineCalibrator:
             self.dip_known = False
             self._mag_buf, self._mag_buf_next, self._mag_fit_next = [], -math.inf, -math.inf
             self._align_yaw_next = False
+            self._rest_acc = None
             self._att_ok = False  # the heading restarts with the next block
             self._nis["mag"].update({"sum": 0.0, "n": 0, "bad_run": 0})
             return
@@ -1240,26 +1657,35 @@ class OnlineCalibrator:
             "gauge": {"sensor": g, "terms": list(self._gauge_terms()) if g else []},
             "quantisation": {k: v for k, v in (self._q or {}).items()},
             "hold_states": sorted(self._hold_slice),
+            "extensions_sigma": self.extensions_sigma(),
+            "extensions_unit": {e: EXTENSIONS[e][2] for e in self._ext_slice},
             "events": list(self.events), "nis": self.nis_summary(),
         }}
         return Calibration(gyro=sens["gyro"], accel=sens["accel"], mag=sens["mag"], source="online",
                            meta=meta, extensions=self.extensions())
 
     def extensions(self) -> dict[str, Any]:
-        """Estimated model extensions in the contract's effect vocabulary: ``temperature_bias`` a list of
-        {sensor, axis, coeff, T0, sigma}, ``g_sensitivity`` a list of {axis, coeff, sigma}."""
-        sig = self.sigma()
+        """Estimated model extensions in the contract's effect vocabulary (keys of
+        :data:`onlinecal.extensions.EXTENSION_KEYS`, accepted by ``validate_extensions`` and ``correct``):
+        ``temperature_bias`` {sensor, axis: None, coeff: [3] per axis (unit/°C), T0 (°C, the log's first
+        temperature)} — a list when both sensors carry one — and ``g_sensitivity`` {sensor: gyro,
+        axis: None, coeff: [3] (rad/s per m/s²)}. Their 1σ are in :meth:`extensions_sigma`."""
         out: dict[str, Any] = {}
         for e, sl in self._ext_slice.items():
             name, sensor = e.split(":")[0], EXTENSIONS[e][0]
-            for k, a in enumerate(AXES):
-                i = sl.start + k
-                d: dict[str, Any] = {"axis": a, "coeff": float(self.x[i]), "sigma": float(sig[i]),
-                                     "unit": EXTENSIONS[e][2]}
-                if name == "temperature_bias":
-                    d = {"sensor": sensor, **d, "T0": self._T0}
-                out.setdefault(name, []).append(d)
+            d: dict[str, Any] = {"sensor": sensor, "axis": None, "coeff": [float(v) for v in self.x[sl]]}
+            if name == "temperature_bias":
+                d["T0"] = float(self._T0) if self._T0 is not None else 25.0
+            if name in out:
+                out[name] = (out[name] if isinstance(out[name], list) else [out[name]]) + [d]
+            else:
+                out[name] = d
         return out
+
+    def extensions_sigma(self) -> dict[str, list[float]]:
+        """1σ of every extension coefficient, per axis: {``extra_states`` key: [3]}."""
+        sig = self.sigma()
+        return {e: [float(v) for v in sig[sl]] for e, sl in self._ext_slice.items()}
 
     def _public_names(self) -> list[tuple[int, str]]:
         """Calibration terms, dip and extensions (attitude and hold offsets are nuisance states)."""
@@ -1372,6 +1798,10 @@ class OnlineCalibrator:
             "noise_ratio": self._noise_ratio, "noise_high": self._noise_high,
             "rail": self._rail, "run": {k: [list(r) for r in v] for k, v in self._run.items()},
             "clip_on": self._clip_on, "T0": self._T0,
+            "rest_acc": None if self._rest_acc is None else {
+                **{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self._rest_acc.items()
+                   if k != "post"},
+                "post": {k: [v[0].tolist(), v[1].tolist()] for k, v in self._rest_acc["post"].items()}},
         }
 
     def set_state(self, d: dict[str, Any]) -> None:
@@ -1428,6 +1858,12 @@ class OnlineCalibrator:
         self._clip_on = {k: bool(v) for k, v in d["clip_on"].items()}
         self._T0 = d["T0"]
         self._T_last = math.nan
+        ra = d.get("rest_acc")
+        self._rest_acc = None if ra is None else {
+            k: (np.asarray(v, float) if k in ("x", "P", "R_nom", "q", "sa", "sm", "sw") else v) for k, v in ra.items()}
+        if self._rest_acc is not None:
+            self._rest_acc["post"] = {k: (np.asarray(v[0], float), np.asarray(v[1], float))
+                                      for k, v in self._rest_acc["post"].items()}
 
     @classmethod
     def from_state(cls, d: dict[str, Any]) -> OnlineCalibrator:
@@ -1442,6 +1878,25 @@ def _fin(v: float) -> float | None:
 
 def _unfin(v: float | None) -> float:
     return -math.inf if v is None else float(v)
+
+
+def _rodrigues_n(theta: Array) -> Array:
+    """exp([θ]_x) (S, 3, 3) for rotation vectors θ (S, 3) (:func:`onlinecal.ukf.layout.rodrigues_cm`)."""
+    return rodrigues_cm(np.ascontiguousarray(theta.T)).transpose(2, 0, 1)
+
+
+def _rodrigues1(v: Array) -> Array:
+    """exp([v]_x) (3, 3) of one rotation vector v (3,) (Rodrigues' formula, series below 1e-4 rad)."""
+    x, y, z = float(v[0]), float(v[1]), float(v[2])
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-8:
+        s, c = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
+    else:
+        a = math.sqrt(a2)
+        s, c = math.sin(a) / a, (1.0 - math.cos(a)) / a2
+    return np.array([[1.0 - c * (y * y + z * z), c * x * y - s * z, c * x * z + s * y],
+                     [c * x * y + s * z, 1.0 - c * (x * x + z * z), c * y * z - s * x],
+                     [c * x * z - s * y, c * y * z + s * x, 1.0 - c * (x * x + y * y)]])
 
 
 def _triad(b1: Array, b2: Array, w1: Array, w2: Array) -> Array:

@@ -8,7 +8,10 @@ and its measured gain (the stages are the sibling modules; this one runs them in
    re-simulation is the null; forward selection keeps a candidate while its gain clears
    max(BIC penalty, null + margin);
 4. the selected effects' parameters (the spec's keys) and the extended calibration (``extensions``);
-5. the simulator with the fitted extension, checked against the measured residual statistics.
+5. the simulator with the fitted extension, checked against the measured residual statistics;
+6. the UKF (:mod:`.online`) from the baseline, and again with the extension (as extra states where the UKF
+   has them, else by correcting the data): its NIS before/after in ``baseline.ukf``, ``ukf_extended`` and
+   each significant finding's gain.
 """
 
 from __future__ import annotations
@@ -150,12 +153,13 @@ def _baseline(logs: list[ImuData], g: float, calibration: Calibration | None) ->
 
 
 def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = True,
-             calibration: Calibration | None = None) -> Diagnosis:
+             calibration: Calibration | None = None, ukf: bool = True) -> Diagnosis:
     """Model-discrepancy discovery over the logs of one sensor unit (module docstring).
 
     ``seed`` seeds the re-simulation's noise; ``check`` runs stage 5 (the extended simulator against the
     measured statistics); ``calibration``: use this baseline (e.g. the unit's campaign calibration, for a
-    session too short or too still to calibrate on its own) instead of running the batch on ``logs``.
+    session too short or too still to calibrate on its own) instead of running the batch on ``logs``;
+    ``ukf``: run stage 6 (the UKF from the baseline, and with the extension; NIS before/after).
     Raises FitError when the batch cannot calibrate anything.
     """
     t_start = time.perf_counter()
@@ -288,16 +292,55 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         t0 = time.perf_counter()
         diag.simulation_check = _simulation_check(an, chosen, r_meas, r_sim, null.problem.ch)
         timing["check"] = time.perf_counter() - t0
+    if ukf:
+        t0 = time.perf_counter()
+        _ukf_stage(diag, logs, cal, exts)
+        timing["ukf"] = time.perf_counter() - t0
     timing["total"] = time.perf_counter() - t_start
     return diag
 
 
+def _ukf_stage(diag: Diagnosis, logs: list[ImuData], cal: Calibration, exts: dict[str, Any]) -> None:
+    """Stage 6: NIS of the UKF from the baseline, and with the extensions; the figures of the sensor a finding
+    acts on (accel, mag; pooled over both for the gyro and "all") go into its gain."""
+    from .online import NOT_CORRECTED, run_ukf
+
+    before = run_ukf(logs, cal)
+    diag.baseline["ukf"] = before
+    if "error" in before or not any(k not in NOT_CORRECTED for k in exts):
+        return
+    after = run_ukf(logs, cal, exts)
+    diag.ukf_extended = after
+    if "error" in after:
+        return
+
+    def pick(r: dict[str, Any], sensor: str) -> tuple[float, float]:
+        s = r["sensors"].get(sensor)
+        return (s["nis_mean"], s["outside_band"]) if s else (r["nis_mean"], r["outside_band"])
+
+    for f in diag.significant:
+        if f.effect in NOT_CORRECTED:
+            continue
+        (nb, ob), (na, oa) = pick(before, f.sensor), pick(after, f.sensor)
+        f.gain.update({"ukf_nis_before": nb, "ukf_nis_after": na, "ukf_outside_before": ob, "ukf_outside_after": oa})
+
+
 def _rest_temperature(designs: list[Design]) -> float | None:
-    """Mean temperature over the rests the batch took the gyro bias from (the baseline bias belongs to it)."""
-    vals = [d.s.temp[iv.i0:iv.i1] for d in designs for iv in d.s.rests]
-    v = np.concatenate(vals) if vals else np.zeros(0)
-    v = v[np.isfinite(v)]
-    return float(v.mean()) if v.size else None
+    """The temperature the baseline's gyro bias belongs to: the batch fits one common slope to the cumulative
+    rate over all rests (eqs. 34–35), each rest weighted by Σ(t − t̄)² (∝ length³), so its bias is that
+    weighted mean over the rests' mean temperatures (an unweighted mean put T0 ~5 °C off on a warming session)."""
+    num = den = 0.0
+    for d in designs:
+        for iv in d.s.rests:
+            T = d.s.temp[iv.i0:iv.i1]
+            t = d.s.t[iv.i0:iv.i1]
+            ok = np.isfinite(T)
+            if ok.sum() < 3:
+                continue
+            w = float(np.sum((t[ok] - t[ok].mean()) ** 2))
+            num += w * float(T[ok].mean())
+            den += w
+    return num / den if den > 0 else None
 
 
 def _rms_physical(an: Analysis, model: list[str], key: str) -> dict[str, float]:

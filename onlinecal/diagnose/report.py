@@ -83,6 +83,35 @@ def _fmt(v: object) -> str:
     return str(v)
 
 
+def _ukf_lines(diag: Diagnosis) -> list[str]:
+    """The UKF stage: window-mean NIS per sensor (per update, 3 dof: expected 3) and the share of windows
+    outside its chi-square band, from the baseline and with the extension."""
+    runs = [("paper model (batch start)", diag.baseline.get("ukf") or {}), ("extended", diag.ukf_extended or {})]
+    runs = [(n, r) for n, r in runs if r]
+    if not runs:
+        return []
+    L = ["", "## UKF innovation consistency (window-mean NIS per update; expected 3)", ""]
+    for n, r in runs:
+        if "error" in r:
+            L.append(f"- {n}: the UKF could not run ({r['error']})")
+    ok = [(n, r) for n, r in runs if "error" not in r]
+    if ok:
+        band = ok[0][1]["band"]
+        L += [f"Band of a window mean: [{band[0]:.3g}, {band[1]:.3g}].", "",
+              "| run | sensor | NIS mean | windows outside band | gate rejections |", "|---|---|---|---|---|"]
+        for n, r in ok:
+            for s, v in r["sensors"].items():
+                L.append(f"| {n} | {s} | {v['nis_mean']:.3g} | {100 * v['outside_band']:.0f} % | {v['rejected']} |")
+        ext = [r for n, r in ok if n == "extended"]
+        if ext and ext[0].get("extra_states"):
+            L += ["", f"Extended run: UKF extra states {', '.join(ext[0]['extra_states'])} "
+                  f"(online estimate {_fmt(ext[0].get('online_extensions', {}))}); data corrected for "
+                  f"{', '.join(ext[0].get('corrected', [])) or 'nothing else'}."]
+        elif ext:
+            L += ["", f"Extended run: data corrected for {', '.join(ext[0].get('corrected', []))}."]
+    return L
+
+
 def write_report(diag: Diagnosis, out: Path) -> Path:
     """Write ``out/report.md`` and its plots; returns the markdown's path."""
     out.mkdir(parents=True, exist_ok=True)
@@ -101,6 +130,7 @@ def write_report(diag: Diagnosis, out: Path) -> Path:
         L += [f"- **{f.effect}** ({f.sensor}): {f.evidence}"]
     if diag.untestable:
         L += ["", "## Not testable on these logs", ""] + [f"- {u}" for u in diag.untestable]
+    L += _ukf_lines(diag)
     cm = diag.baseline.get("channels_measured", {})
     cs = diag.baseline.get("channels_simulated", {})
     L += ["", "## Baseline residual, measured vs re-simulated through the fitted paper model", "",

@@ -13,6 +13,8 @@ from ..model import Calibration
 
 SCHEMA = "onlinecal.diagnosis/1"
 GAIN_KEYS = ("heldout_rms_before", "heldout_rms_after", "loglik_gain", "bic_delta")
+# the UKF stage's figures (window-mean NIS per update, expected 3; share of windows outside the band), where run
+UKF_GAIN_KEYS = ("ukf_nis_before", "ukf_nis_after", "ukf_outside_before", "ukf_outside_after")
 
 
 def _plain(x: Any) -> Any:
@@ -52,7 +54,8 @@ class Finding:
     def to_dict(self) -> dict[str, Any]:
         return _plain({"effect": self.effect, "sensor": self.sensor, "axis": self.axis, "score": self.score,
                        "significant": self.significant, "parameters": self.parameters,
-                       "gain": {k: self.gain.get(k, float("nan")) for k in GAIN_KEYS},
+                       "gain": {**{k: self.gain.get(k, float("nan")) for k in GAIN_KEYS},
+                                **{k: self.gain[k] for k in UKF_GAIN_KEYS if k in self.gain}},
                        "evidence": self.evidence, "threshold": self.threshold, "null_score": self.null_score})
 
 
@@ -65,6 +68,7 @@ class Diagnosis:
     simulation_check: dict[str, Any] = field(default_factory=dict)
     timing: dict[str, float] = field(default_factory=dict)
     sources: list[str] = field(default_factory=list)
+    ukf_extended: dict[str, Any] = field(default_factory=dict)  # the UKF with the extensions (stage 6)
 
     @property
     def significant(self) -> list[Finding]:
@@ -84,6 +88,7 @@ class Diagnosis:
             "verdict": self.verdict,
             "extended_calibration": self.calibration.to_dict(),
             "simulation_check": self.simulation_check,
+            "ukf_extended": self.ukf_extended,
             "untestable": self.untestable,
             "timing_s": self.timing,
         })

@@ -1,0 +1,138 @@
+"""Model extensions for ``replay`` and ``run``: a calibration JSON's ``extensions`` (written by ``diagnose``)
+applied to the raw data before the UKF sees it, through :func:`onlinecal.extensions.correct` (the inverse of
+each effect, Zhang et al. 2014 eq. 1 extended in front of the paper's ``matrix @ (raw − bias)``).
+
+* replay (:func:`prepare`): each whole log is corrected (time offsets resampled, ω̇ from the whole log);
+* run (:class:`BlockCorrector`): live blocks arrive ~0.25 s at a time and cannot be resampled cheaply, so
+  only the pointwise extensions are applied per block — temperature_bias, g_sensitivity,
+  scale_nonlinearity, axis_sign, lever_arm (its ω̇ is a Savitzky–Golay derivative within the block, less
+  accurate within 0.05 s of the block's ends) and a magnetometer time_offset (a re-stamp); a gyro or
+  accelerometer time_offset is refused (:func:`check_live`).
+
+Two extensions do not change the data: bias_drift (a process-noise density, see
+:func:`onlinecal.extensions.process_noise`) and saturation (the UKF's own rail detector skips clipped
+samples); both are named in the notes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+
+from .extensions import correct, validate_extensions
+from .io.base import ImuData
+from .model import Calibration
+
+NOT_APPLIED = {
+    "bias_drift": "bias_drift is a process-noise density for the bias states, not a correction of the data "
+                  "(the UKF's own bias random walk applies)",
+    "saturation": "saturation is not corrected: the UKF's rail detector skips clipped samples",
+}
+LIVE_POINTWISE = ("temperature_bias", "g_sensitivity", "scale_nonlinearity", "axis_sign", "lever_arm")
+
+
+def _applied(ext: dict[str, list[dict[str, Any]]]) -> list[str]:
+    return [n for n in ext if n not in NOT_APPLIED]
+
+
+def prepare(logs: list[ImuData], cal: Calibration | None) -> tuple[list[ImuData], list[str]]:
+    """Apply ``cal.extensions`` to every log (whole-log :func:`~onlinecal.extensions.correct`).
+
+    Returns the corrected logs (the inputs unchanged when there are no extensions) and one note per
+    applied or skipped extension. Raises ValueError naming the log and the problem (e.g. a
+    temperature_bias extension on a log without a temperature column).
+    """
+    if cal is None or not cal.extensions:
+        return list(logs), []
+    ext = validate_extensions(cal.extensions)
+    notes = [NOT_APPLIED[n] for n in ext if n in NOT_APPLIED]
+    todo = _applied(ext)
+    if not todo:
+        return list(logs), notes
+    out = []
+    for d in logs:
+        try:
+            out.append(correct(d, cal.extensions, calibration=cal))
+        except ValueError as e:
+            raise ValueError(f"{d.source or 'log'}: {e}") from None
+    notes.insert(0, f"extensions applied to the raw data before the filter: {', '.join(todo)}")
+    return out, notes
+
+
+def check_live(cal: Calibration | None) -> list[str]:
+    """Which extensions a live run can apply per block; raises ValueError for a gyro or accelerometer
+    time_offset (a live block cannot be resampled at shifted instants without holding data back)."""
+    if cal is None or not cal.extensions:
+        return []
+    ext = validate_extensions(cal.extensions)
+    for e in ext.get("time_offset", []):
+        if e["sensor"] != "mag":
+            raise ValueError(f"the {e['sensor']} time_offset extension ({e['seconds']:g} s) cannot be applied to "
+                             "live blocks (it needs resampling over the whole log); use replay on a recorded log, "
+                             "or an --init calibration without it")
+    notes = [NOT_APPLIED[n] for n in ext if n in NOT_APPLIED]
+    todo = _applied(ext)
+    if todo:
+        notes.insert(0, f"extensions applied per live block: {', '.join(todo)}"
+                     + (" (lever_arm: ω̇ within each block, approximate at its ends)" if "lever_arm" in ext else ""))
+    return notes
+
+
+class BlockCorrector:
+    """Per-block correction for live runs (see the module docstring); ``__call__(block) -> block``.
+
+    A block without temperature readings keeps its raw values for temperature_bias (counted in
+    ``skipped_temperature``) rather than stopping the run; an empty IMU block only has its mag re-stamped, and a
+    one-sample block skips lever_arm (no derivative).
+    """
+
+    def __init__(self, cal: Calibration) -> None:
+        check_live(cal)
+        self.cal = cal
+        self.ext = dict(cal.extensions)
+        self._no_temp = {k: v for k, v in self.ext.items() if k != "temperature_bias"}
+        self._mag_only = {k: v for k, v in self.ext.items() if k == "time_offset"}
+        self.skipped_temperature = 0
+
+    def __call__(self, block: ImuData) -> ImuData:
+        if not self.ext:
+            return block
+        if block.n_imu == 0:
+            return correct(block, self._mag_only) if self._mag_only and block.n_mag else block
+        ext = self.ext
+        if "temperature_bias" in ext and not np.isfinite(np.asarray(block.temp, float)).any():
+            self.skipped_temperature += 1
+            ext = self._no_temp
+        if block.n_imu < 2 and "lever_arm" in ext:  # no derivative from one sample
+            ext = {k: v for k, v in ext.items() if k != "lever_arm"}
+        return correct(block, ext, calibration=self.cal)
+
+
+@contextmanager
+def live_corrected(cal: Calibration | None) -> Iterator[BlockCorrector | None]:
+    """While active, every ``onlinecal.io.live.LiveSource`` yields blocks passed through a
+    :class:`BlockCorrector` for ``cal`` (``run_live`` opens its source by that name; it has no block hook
+    of its own). Yields the corrector (None, and nothing replaced, when ``cal`` has no extension that
+    changes the data). Raises ValueError as :func:`check_live`."""
+    check_live(cal)
+    if cal is None or not _applied(validate_extensions(cal.extensions)):
+        yield None
+        return
+    from .io import live
+
+    corr = BlockCorrector(cal)
+    orig = live.LiveSource
+
+    class _Corrected(orig):  # type: ignore[misc, valid-type]
+        def blocks(self, *args: Any, **kw: Any) -> Iterator[ImuData]:
+            for b in super().blocks(*args, **kw):
+                yield corr(b)
+
+    live.LiveSource = _Corrected  # type: ignore[misc]
+    try:
+        yield corr
+    finally:
+        live.LiveSource = orig  # type: ignore[misc]

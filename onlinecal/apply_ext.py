@@ -16,8 +16,6 @@ samples); both are named in the notes.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -111,28 +109,10 @@ class BlockCorrector:
         return correct(block, ext, calibration=self.cal)
 
 
-@contextmanager
-def live_corrected(cal: Calibration | None) -> Iterator[BlockCorrector | None]:
-    """While active, every ``onlinecal.io.live.LiveSource`` yields blocks passed through a
-    :class:`BlockCorrector` for ``cal`` (``run_live`` opens its source by that name; it has no block hook
-    of its own). Yields the corrector (None, and nothing replaced, when ``cal`` has no extension that
-    changes the data). Raises ValueError as :func:`check_live`."""
+def live_transform(cal: Calibration | None) -> BlockCorrector | None:
+    """The per-block correction ``run_live(..., transform=...)`` applies for ``cal``'s extensions, or None when
+    none of them changes the data. Raises ValueError as :func:`check_live`."""
     check_live(cal)
     if cal is None or not _applied(validate_extensions(cal.extensions)):
-        yield None
-        return
-    from .io import live
-
-    corr = BlockCorrector(cal)
-    orig = live.LiveSource
-
-    class _Corrected(orig):  # type: ignore[misc, valid-type]
-        def blocks(self, *args: Any, **kw: Any) -> Iterator[ImuData]:
-            for b in super().blocks(*args, **kw):
-                yield corr(b)
-
-    live.LiveSource = _Corrected  # type: ignore[misc]
-    try:
-        yield corr
-    finally:
-        live.LiveSource = orig  # type: ignore[misc]
+        return None
+    return BlockCorrector(cal)

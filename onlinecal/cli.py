@@ -259,17 +259,16 @@ def cmd_run(a: argparse.Namespace) -> int:
     if a.duration is not None and not a.duration > 0:
         raise UsageError(f"--duration: must be a positive number of seconds, got {a.duration:g}")
     init = _load_cal(a.init) if a.init else None
-    from .apply_ext import check_live, live_corrected
+    from .apply_ext import check_live, live_transform
 
     try:
         _warn(check_live(init))
     except ValueError as e:
         raise UsageError(f"--init {a.init}: {e}") from None
     try:
-        with live_corrected(init):
-            res = ukf.run_live(a.connect, init, duration_s=a.duration, json_out=a.json, trace_out=a.trace,
-                               checkpoint=a.checkpoint, checkpoint_every_s=a.checkpoint_every, resume=a.resume,
-                               rate_hz=a.rate, apply=a.apply, **_scales(a))
+        res = ukf.run_live(a.connect, init, duration_s=a.duration, json_out=a.json, trace_out=a.trace,
+                           checkpoint=a.checkpoint, checkpoint_every_s=a.checkpoint_every, resume=a.resume,
+                           rate_hz=a.rate, apply=a.apply, transform=live_transform(init), **_scales(a))
         if init is not None and init.extensions and not res.calibration.extensions:
             res.calibration = res.calibration.replace(extensions=init.extensions)
             if a.json:

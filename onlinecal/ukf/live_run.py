@@ -33,7 +33,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from ..io.base import LogError
+from ..io.base import ImuData, LogError
 from ..model import Calibration
 from .filter import OnlineCalibrator, UKFConfig
 from .replay import OnlineResult
@@ -180,7 +180,8 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
              checkpoint_every_s: float = 10.0, resume: bool = False, rate_hz: float = 100.0,
              apply: str | None = None, status_every_s: float | None = None,
              acc_scale: float | None = None, gyro_scale: float | None = None, mag_scale: float | None = None,
-             source_options: dict[str, Any] | None = None, log: TextIO | None = None) -> LiveResult:
+             source_options: dict[str, Any] | None = None, log: TextIO | None = None,
+             transform: Callable[[ImuData], ImuData] | None = None) -> LiveResult:
     """Calibrate online from the live link ``url`` until ``duration_s`` s of vehicle time (from the first
     sample, across resumes), or Ctrl-C / SIGTERM, which end the run cleanly with a result.
 
@@ -193,7 +194,8 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
     afterwards, set the calibration as vehicle parameters and confirm each (see ``LiveResult.applied``).
     ``status_every_s``: link/motion status line period on ``log`` (default stderr; 5 s on a terminal,
     30 s otherwise; 0: none). ``source_options``: more LiveSource arguments (``reorder_window``,
-    ``reconnect_s``, ``block_s``, ``timeout_s``).
+    ``reconnect_s``, ``block_s``, ``timeout_s``). ``transform``: applied to every block before the filter
+    sees it, on the filter's thread (the model extensions' per-block corrections, ``apply_ext.live_transform``).
 
     Raises LogError when the link cannot be opened, the checkpoint is unusable, or no sample arrived.
     """
@@ -305,7 +307,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
                 if item is not None:
                     block, pos = item
                     if block.n_imu or block.n_mag:
-                        cal.feed(block)
+                        cal.feed(transform(block) if transform is not None else block)
                         pos_fed, dirty = pos, True
                         if block.n_imu:
                             fed["imu"] += block.n_imu

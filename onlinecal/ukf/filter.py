@@ -1325,24 +1325,7 @@ class OnlineCalibrator:
         else:
             # not at rest (rests go to _rest_step): an accel outlier is motion the model lacks, dropped
             x_new, P_new = self._update(Y, x_pred, P_pred, zs, Zs, rs, names, False, tl, damp=c.update_damping)
-        P_new = 0.5 * (P_new + P_new.T)
-        # fold the attitude error into the nominal (reset, USQUE)
-        self.R_nom = self.R_nom @ _rodrigues1(x_new[ATT])
-        x_new[ATT] = 0.0
-        if self._yaw_free:
-            # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone):
-            # forget it — marginalise it out and give it back a diffuse σ. A small σ would assert a
-            # heading knowledge the data do not hold and leak spurious information into the alphas.
-            P_new = self._set_yaw_variance(P_new, c.yaw_free_sigma**2)
-        if (not np.isfinite(x_new).all() or not np.isfinite(P_new).all()
-                or not (P_new.diagonal() > 0).all()):
-            self._diverged("non-finite state or non-positive variance", tl)
-            return
-        self.x, self.P = x_new, P_new
-        self._n_blocks += 1
-        if tl >= self._next_trace:
-            self._trace_row(tl)
-            self._next_trace = tl + c.trace_every_s
+        self._commit(x_new, P_new, tl)
 
     def _rest_step(self, B: _Blocks, b: int, t: Array, T: Array, n: dict[str, float], held: dict[str, bool],
                    use_mag: bool, clip: dict[str, bool]) -> None:
@@ -1458,14 +1441,23 @@ class OnlineCalibrator:
         Y = X - x0
         acc["post"] = {}
         x_new, P_new = self._update(Y, x0, P0, zs, Zs, rs, names, True, tl, record=first, post_out=acc["post"])
+        self._commit(x_new, P_new, tl)  # a divergence there also ends the running rest (_reset_calibration)
+
+    def _commit(self, x_new: Array, P_new: Array, tl: float) -> None:
+        """Take a posterior (x (n,), P (n, n)) as the state after a motion or rest update at log time ``tl`` s:
+        fold its attitude error into the nominal (reset, USQUE), forget the heading while nothing sees it,
+        and treat a non-finite state or non-positive variance as a divergence instead."""
+        c = self.config
         P_new = 0.5 * (P_new + P_new.T)
         self.R_nom = self.R_nom @ _rodrigues1(x_new[ATT])
         x_new[ATT] = 0.0
         if self._yaw_free:
+            # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone):
+            # forget it — marginalise it out and give it back a diffuse σ. A small σ would assert a
+            # heading knowledge the data do not hold and leak spurious information into the alphas.
             P_new = self._set_yaw_variance(P_new, c.yaw_free_sigma**2)
         if (not np.isfinite(x_new).all() or not np.isfinite(P_new).all()
                 or not (P_new.diagonal() > 0).all()):
-            self._rest_acc = None
             self._diverged("non-finite state or non-positive variance", tl)
             return
         self.x, self.P = x_new, P_new

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from netutil import Sender, free_port
 
 from onlinecal.io.base import ImuData, LogError
 from onlinecal.io.live import LiveSource
@@ -26,37 +27,6 @@ WATCHDOG_S = 15.0  # no single stream in this file may take longer
 def session() -> ImuData:
     """20 s of the paper's session at 100 Hz (IMU) / 50 Hz (mag)."""
     return simulate("paper", 3, duration=20.0).data
-
-
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Sender:
-    """Runs ``fn(stop_event)`` in a thread; its result or exception is kept."""
-
-    def __init__(self, fn) -> None:
-        self.stop = threading.Event()
-        self.result = None
-        self.error: BaseException | None = None
-
-        def run() -> None:
-            try:
-                self.result = fn(self.stop)
-            except BaseException as e:  # reported by the test, not lost in the thread
-                self.error = e
-
-        self.thread = threading.Thread(target=run, daemon=True)
-        self.thread.start()
-
-    def finish(self) -> None:
-        self.stop.set()
-        self.thread.join(10.0)
-        assert not self.thread.is_alive(), "sender thread did not end"
-        if self.error is not None:
-            raise self.error
 
 
 def consume(src: LiveSource) -> tuple[ImuData, list[ImuData]]:

@@ -11,23 +11,22 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from netutil import free_port, sending
 
 from onlinecal.batch import run_batch
 from onlinecal.cli import main
 from onlinecal.io import write_log
 from onlinecal.io.base import ImuData
 from onlinecal.io.live import LiveSource
-from onlinecal.io.sender import fault_schedule, send_session
+from onlinecal.io.sender import fault_schedule
 from onlinecal.io.tlog import TlogReader
 from onlinecal.model import PARAMS, SENSORS, Calibration
 from onlinecal.sim.sensors import simulate
@@ -39,43 +38,9 @@ FAULTS = {"drop": 0.10, "reorder": 0.05, "duplicate": 0.05, "seed": 11}
 RUN_TIMEOUT_S = 60.0
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def cli(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "onlinecal", *args], capture_output=True, text=True, env=ENV,
                           timeout=timeout)
-
-
-class Sender:
-    """The test vehicle (``send_session``) in a thread; its result or exception is kept."""
-
-    def __init__(self, data: ImuData, url: str, **kw) -> None:
-        self.stop = threading.Event()
-        self.result: dict | None = None
-        self.error: BaseException | None = None
-
-        def run() -> None:
-            try:
-                self.result = send_session(data, url, stop_event=self.stop, **kw)
-            except BaseException as e:  # reported by the test, not lost in the thread
-                self.error = e
-
-        self.thread = threading.Thread(target=run, daemon=True)
-        self.thread.start()
-
-    def join(self, timeout: float) -> None:
-        self.thread.join(timeout)
-
-    def finish(self) -> None:
-        self.stop.set()
-        self.thread.join(10.0)
-        assert not self.thread.is_alive(), "sender thread did not end"
-        if self.error is not None:
-            raise self.error
 
 
 class Run:
@@ -162,7 +127,7 @@ def uninterrupted(paper) -> SimpleNamespace:
     try:
         run.wait_for("link open")
         t0 = time.monotonic()
-        snd = Sender(paper.data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, **FAULTS)
+        snd = sending(paper.data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, **FAULTS)
         rc = run.wait()
         wall = time.monotonic() - t0
     finally:
@@ -214,7 +179,7 @@ def test_kill_9_and_resume_matches_uninterrupted_run(paper, uninterrupted) -> No
     snd = None
     try:
         first.wait_for("link open")
-        snd = Sender(paper.data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, **FAULTS)
+        snd = sending(paper.data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, **FAULTS)
         # Kill once a checkpoint holds 80 s of data (during the static positions).
         deadline = time.monotonic() + 30
         fed_s = 0.0
@@ -294,7 +259,7 @@ def test_ctrl_c_then_apply_sets_parameters_confirmed_by_param_value(paper, tmp_p
     try:
         run.wait_for("link open")
         # The vehicle streams, then stays (heartbeats, PARAM_SET) without RAW_IMU until the test ends.
-        snd = Sender(data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, params=table, linger_s=30.0)
+        snd = sending(data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, params=table, linger_s=30.0)
         deadline = time.monotonic() + 20
         while not (ck.exists() and json.loads(ck.read_text())["fed"]["t_last"] >= data.t_imu[-1] - 0.5):
             assert time.monotonic() < deadline, "the stream did not arrive"
@@ -321,7 +286,7 @@ def test_set_params_protocol_edge_cases(paper) -> None:
     name16 = "CAL_ACC0_XSCALE1"  # exactly 16 characters: no NUL terminator on the wire
     table = {name16: 1.0, "COMPASS_ORIENT": 0.0, "X": 0.0}
     data = paper.data.slice_imu(0, 100)
-    snd = Sender(data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, params=table, strict_params=True,
+    snd = sending(data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, params=table, strict_params=True,
                  param_bytewise=True, linger_s=15.0)
     try:
         src = LiveSource(f"udpin:127.0.0.1:{port}", timeout_s=3.0, duration_s=0.5)

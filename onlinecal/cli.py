@@ -112,16 +112,17 @@ def cmd_batch(a: argparse.Namespace) -> int:
     return 0
 
 
-def _initial(a: argparse.Namespace, logs: list[Any]) -> Any:
+def _initial(a: argparse.Namespace, logs: list[Any]) -> tuple[Any, Any]:
+    """The filter's start for ``--init``: (calibration or None, the BatchResult when it came from the batch)."""
     if a.init == "none":
-        return None
+        return None, None
     if a.init == "batch":
         from .batch import run_batch
 
         res = run_batch(logs)
         _warn(res.warnings)
-        return res.calibration
-    return _load_cal(a.init)
+        return res.calibration, res
+    return _load_cal(a.init), None
 
 
 def _ukf() -> Any:
@@ -151,15 +152,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
         for p in a.logs:
             logs += _read_logs([p], a)
             pb.update()
-    batch = None
-    if a.init == "batch":
-        from .batch import run_batch
-
-        batch = run_batch(logs)
-        _warn(batch.warnings)
-        init = batch.calibration
-    else:
-        init = _initial(a, logs)
+    init, batch = _initial(a, logs)
     from .apply_ext import prepare
 
     try:

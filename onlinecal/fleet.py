@@ -15,13 +15,11 @@ import math
 import struct
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .io.base import ImuData
 from .model import PARAMS, SENSORS, Calibration
 
 FLEET_SCHEMA = "onlinecal.fleet/1"
@@ -51,34 +49,7 @@ def replay_chunked(logs: list[Any], init: Calibration | None, trace_path: str | 
     """
     from .ukf import replay
 
-    total = int(sum(d.n_imu for d in logs))
-    if on_progress is None:
-        return replay(logs, init, chunk=chunk, trace_path=trace_path)
-    done = [0]
-    wrapped = []
-    for d in logs:
-        base = done[0]
-        wrapped.append(_Reporting.wrap(d, lambda i, b=base: on_progress(b + i, total)))
-        done[0] += d.n_imu
-    res = replay(wrapped, init, chunk=chunk, trace_path=trace_path)
-    on_progress(total, total)
-    return res
-
-
-@dataclass
-class _Reporting(ImuData):
-    """An ImuData whose ``slice_imu`` (how replay cuts a log into chunks) reports the samples done so far."""
-
-    on_slice: Callable[[int], None] | None = None
-
-    @classmethod
-    def wrap(cls, d: ImuData, cb: Callable[[int], None]) -> _Reporting:
-        return cls(d.t_imu, d.gyro, d.acc, d.temp, d.t_mag, d.mag, d.source, d.warnings, cb)
-
-    def slice_imu(self, i0: int, i1: int) -> ImuData:
-        if self.on_slice is not None:
-            self.on_slice(min(i0, self.n_imu))
-        return ImuData.slice_imu(self, i0, i1)
+    return replay(logs, init, chunk=chunk, trace_path=trace_path, on_progress=on_progress)
 
 
 def log_start_time(path: str | Path, data: Any = None) -> tuple[float | None, str | None]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,23 +38,32 @@ class OnlineResult:
 
 def replay(logs: list[ImuData], init: Calibration | None = None, config: UKFConfig | None = None,
            chunk: int | None = None, trace_path: str | Path | None = None,
-           keep_state: bool = False) -> OnlineResult:
+           keep_state: bool = False,
+           on_progress: Callable[[int, int], None] | None = None) -> OnlineResult:
     """Run the UKF over logs in order (each log restarts the attitude, the calibration carries over).
 
     ``chunk``: feed the logs in blocks of this many IMU samples (None: each log in one call — the
     calibrator cuts its own filter blocks either way). ``trace_path``: write the trace CSV there.
+    ``on_progress(samples_done, samples_total)``: called after every block fed, across all logs.
     """
     cal = OnlineCalibrator(init, config)
     t0 = time.perf_counter()
     log_s = 0.0
+    total = int(sum(d.n_imu for d in logs))
+    done = 0
     for d in logs:
         cal.new_log()
         if chunk is None:
             cal.feed(d)
+            if on_progress is not None:
+                on_progress(done + d.n_imu, total)
         else:
             for i in range(0, d.n_imu, chunk):
                 cal.feed(d.slice_imu(i, i + chunk))
+                if on_progress is not None:
+                    on_progress(done + min(i + chunk, d.n_imu), total)
         cal.flush()
+        done += d.n_imu
         log_s += d.duration
     wall = time.perf_counter() - t0
     rows = cal.trace_rows()

@@ -6,17 +6,19 @@ estimates (the gauge terms — the gyro's alpha and xi when the batch took B fro
 phases — are held at the batch's values as consider states, so their online error is the batch's);
 events; wall time.
 
-    PYTHONPATH=. python benchmarks/ukf_stats.py [--seeds 20] [--start 0]
+    PYTHONPATH=. python benchmarks/ukf_stats.py [--seeds 20] [--start 0] [--set KEY=JSON ...]
 
 ``--cold S``: instead, the cold start of gyro and accel (prior σ 0.2, 0.2 rad/s; 0.05, 0.5 m/s²; the mag
 from the batch) over the first S seconds of each session (90: the 30-s rest and 60 s of turns to static
 positions): per seed the largest |error|/σ of the gyro's and the accel's bias and scale and of all their
-terms, and how many seeds have every bias and scale within 3σ.
+terms, and how many seeds have every bias and scale within 3σ. ``--mag-cold``: nothing from the batch
+(``--init none``), the mag from its own cold sphere fit, and its terms judged too.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from collections import Counter
 
 import numpy as np
@@ -26,6 +28,7 @@ from onlinecal.batch.pipeline import run_batch
 from onlinecal.model import PARAMS, SENSORS
 from onlinecal.sim import simulate
 from onlinecal.ukf import replay
+from onlinecal.ukf.filter import UKFConfig
 
 
 def main() -> None:
@@ -33,7 +36,11 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--cold", type=float, default=None, metavar="S")
+    ap.add_argument("--mag-cold", action="store_true", help="with --cold: the mag cold too (--init none)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
+                    help="a UKFConfig field for this run (e.g. update_damping=4), to compare settings")
     args = ap.parse_args()
+    args.config = UKFConfig(**{k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)})
     if args.cold is not None:
         cold(args)
         return
@@ -42,7 +49,7 @@ def main() -> None:
     for seed in range(args.start, args.start + args.seeds):
         sim = simulate("paper", seed)
         batch = run_batch([sim.data]).calibration
-        res = replay([sim.data], batch)
+        res = replay([sim.data], batch, args.config)
         walls.append(res.wall_s)
         events.update(e["kind"] for e in res.events)
         g = res.calibration.meta["online"]["gauge"]
@@ -83,25 +90,31 @@ def main() -> None:
 
 
 def cold(args: argparse.Namespace) -> None:
-    ok = {"gyro": 0, "accel": 0}
+    sensors = ("gyro", "accel", "mag") if args.mag_cold else ("gyro", "accel")
+    ok = dict.fromkeys(sensors, 0)
     n = 0
     for seed in range(args.start, args.start + args.seeds):
         sim = simulate("paper", seed)
-        batch = run_batch([sim.data]).calibration
         d = sim.data.slice_imu(0, int(np.searchsorted(sim.data.t_imu, args.cold)))
-        res = replay([d], batch.replace(gyro=None, accel=None))
+        if args.mag_cold:
+            init = None  # --init none: the mag too, from its own sphere fit
+        else:
+            init = run_batch([sim.data]).calibration.replace(gyro=None, accel=None)
+        res = replay([d], init, args.config)
         line = [f"seed {seed:2d}"]
-        for s in ("gyro", "accel"):
+        for s in sensors:
             c, t = res.calibration.sensor(s), sim.truth.calibration.sensor(s)
             z = np.concatenate([(c.params()[p] - t.params()[p]) / np.asarray(c.sigma[p]) for p in PARAMS])
             bs = float(np.abs(z[:6]).max())
             ok[s] += bs < 3
-            line.append(f"{s}: max |err|/σ bias+scale {bs:5.2f}, all 12 terms {np.abs(z).max():5.2f}, "
-                        f"NEES {z @ z:7.1f}")
+            rel = float(np.max(np.asarray(c.sigma["scale"]) / np.abs(c.scale)))
+            line.append(f"{s}: max |err|/σ bias+scale {bs:5.2f}, all 12 {np.abs(z).max():5.2f}, "
+                        f"NEES {z @ z:6.1f}, scale σ ≤ {100 * rel:.2g} %")
         n += 1
         print(" | ".join(line), flush=True)
-    print(f"cold start over the first {args.cold:g} s: every bias and scale within 3σ on "
-          f"{ok['gyro']}/{n} seeds (gyro), {ok['accel']}/{n} seeds (accel)")
+    print(f"cold start ({'--init none' if args.mag_cold else 'mag from the batch'}) over the first "
+          f"{args.cold:g} s: every bias and scale within 3σ on "
+          + ", ".join(f"{ok[s]}/{n} seeds ({s})" for s in sensors))
 
 
 if __name__ == "__main__":

@@ -216,6 +216,7 @@ def test_degenerate_motion_does_not_drag_unexcited(kind, monkeypatch):
     assert not [e for e in cal.events if e["kind"] in ("divergence", "saturation")], cal.events
     obs = cal.observability()
     truth = sim.truth.calibration
+    q_rw = cal._cal_rw()  # random-walk variance per second of every state
     n_unexc = 0
     for s in SENSORS:
         for p in PARAMS:
@@ -225,11 +226,17 @@ def test_degenerate_motion_does_not_drag_unexcited(kind, monkeypatch):
                 i = sl.start + k
                 sig = float(np.sqrt(cal.P[i, i]))
                 # consistent everywhere; where the motion does not reach (σ kept above 0.8 of the prior)
-                # the estimate stays within one prior σ of where it started
+                # the estimate moves no more than the information it gained allows: the shift of the mean
+                # by Gaussian updates has variance (σ0² + the random walk's q·T) − σ² — 3 of those: at most
+                # ~1.8 σ0 at ratio 0.8 — and, for a term the data never touched, a tenth of σ0 (the
+                # unscented transform's second-order shift of the mean, which no variance records)
                 assert abs(cal.x[i] - tv[k]) < 3 * sig, (s, p, a, cal.x[i] - tv[k], sig)
-                if obs[f"{s}.{p}.{a}"]["ratio"] > 0.8:
+                ratio = obs[f"{s}.{p}.{a}"]["ratio"]
+                if ratio > 0.8:
                     n_unexc += 1
-                    assert abs(cal.x[i] - cal.prior_x[i]) <= cal.prior_sigma[i], (s, p, a)
+                    gained = cal.prior_sigma[i] ** 2 + q_rw[i] * sim.data.duration - sig**2
+                    allowed = max(3 * np.sqrt(max(gained, 0.0)), 0.1 * cal.prior_sigma[i])
+                    assert abs(cal.x[i] - cal.prior_x[i]) <= allowed, (s, p, a, ratio)
     # the axes the motion cannot excite are reported unexcited
     for a in unexc_axes:
         assert not obs[f"gyro.scale.{a}"]["excited"], (kind, a, obs[f"gyro.scale.{a}"])
@@ -474,19 +481,20 @@ def test_cold_gyro_and_accel_within_60s_of_motion_six_seeds():
             assert np.all(np.asarray(c.sigma["scale"]) < 0.01), (seed, s, c.sigma["scale"])
 
 
-@pytest.mark.xfail(strict=True, reason="open (issue 3): with the mag from the batch (a tighter prior than "
-                   "the six-seed test's) the cold gyro and accel end 4.7σ (gyro scale) and 5.4σ (accel) off on "
-                   "seed 0 — 9/12 seeds pass for the accel, 11/12 for the gyro (benchmarks/ukf_stats.py --cold 90 "
-                   "--seeds 12). Cause: the first turns to the static positions (up to 180°) with a 20 % gyro-scale "
-                   "prior leave the attitude uncertain by ~0.5 rad, and the Gaussian update of a precise mag and "
-                   "accel over that range is not consistent even partial (update_damping)")
-def test_cold_start_with_batch_mag_seed0():
-    sim = simulate("paper", 0)
+@pytest.mark.parametrize("seed", [0, 3, 6])
+def test_cold_start_with_batch_mag(seed):
+    """Cold gyro and accel, the mag from the batch (a tighter prior than the six-seed test's), after the
+    30-s rest and 60 s of motion: every bias and scale within 3σ. These three seeds ended 4–5σ off while
+    a block's update could remove half the prior's variance (update_damping 1): the first turns to the
+    static positions (up to 180°) under a 20 % gyro-scale prior were narrowed in one linearisation."""
+    sim = simulate("paper", seed)
     batch = run_batch([sim.data]).calibration
     d = sim.data.slice_imu(0, int(np.searchsorted(sim.data.t_imu, 90.0)))
     res = replay([d], batch.replace(gyro=None, accel=None))
+    assert not [e for e in res.events if e["kind"] == "divergence"], res.events
     for s in ("gyro", "accel"):
         c, t = res.calibration.sensor(s), sim.truth.calibration.sensor(s)
         for p in ("bias", "scale"):
             err, sig = c.params()[p] - t.params()[p], np.asarray(c.sigma[p])
             assert np.all(np.abs(err) < 3 * sig), (s, p, err / sig)
+        assert np.all(np.asarray(c.sigma["scale"]) < 0.01), (s, c.sigma["scale"])  # resolved, from 0.2 / 0.05

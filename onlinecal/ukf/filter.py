@@ -409,12 +409,7 @@ class OnlineCalibrator:
         self._trace: deque[dict[str, float]] = deque(maxlen=c.trace_max_rows)
         self._rate: float | None = None
         self._L = 0
-        self._pend_t = np.zeros(0)
-        self._pend_w = np.zeros((0, 3))
-        self._pend_a = np.zeros((0, 3))
-        self._pend_T = np.zeros(0)
-        self._pend_tm = np.zeros(0)
-        self._pend_m = np.zeros((0, 3))
+        self._clear_pending()
         self._t_last: float | None = None
         self._w_last = np.zeros(3)
         self._T_last = math.nan
@@ -780,15 +775,19 @@ class OnlineCalibrator:
             self._pend_m = np.concatenate([self._pend_m, block.mag.reshape(-1, 3)])
         self._process()
 
-    def new_log(self) -> None:
-        """The next samples start a new log: keep the calibration, restart the attitude and clock."""
-        self.flush()
+    def _clear_pending(self) -> None:
+        """Empty the buffers of samples fed but not yet cut into filter blocks."""
         self._pend_t = np.zeros(0)
         self._pend_w = np.zeros((0, 3))
         self._pend_a = np.zeros((0, 3))
         self._pend_T = np.zeros(0)
         self._pend_tm = np.zeros(0)
         self._pend_m = np.zeros((0, 3))
+
+    def new_log(self) -> None:
+        """The next samples start a new log: keep the calibration, restart the attitude and clock."""
+        self.flush()
+        self._clear_pending()
         self._t_last = None
         self._att_ok = False
         self._q = None  # a new log may come in another format: its lattice is detected again

@@ -104,9 +104,14 @@ def cmd_batch(a: argparse.Namespace) -> int:
     _warn(res.warnings)
     print(truth_table(None, res.calibration, None))
     print(f"batch pipeline: {sum(d.n_imu for d in logs)} IMU samples in {dt:.2f} s")
-    if a.json:
-        res.calibration.save(a.json)
-        print(f"wrote {a.json}")
+    return _wrote(res.calibration, a.json, report, written)
+
+
+def _wrote(cal: Any, json_path: str | None, report: Any, written: list[str]) -> int:
+    """Save ``cal`` to ``--json`` if asked, name the files written, exit 0 (batch and replay)."""
+    if json_path:
+        cal.save(json_path)
+        print(f"wrote {json_path}")
     if report:
         print(f"wrote {report}/ ({', '.join(written)})")
     return 0
@@ -180,12 +185,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
             written = write_report(report, logs, "replay", batch=batch, online=res,
                                    init=None if batch is not None else init, progress=st)
     print(truth_table(None, init, res.calibration))
-    if a.json:
-        res.calibration.save(a.json)
-        print(f"wrote {a.json}")
-    if report:
-        print(f"wrote {report}/ ({', '.join(written)})")
-    return 0
+    return _wrote(res.calibration, a.json, report, written)
 
 
 def _replay_fleet(a: argparse.Namespace) -> int:

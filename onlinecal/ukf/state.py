@@ -182,3 +182,16 @@ def prior(init: Calibration | None, config: UKFConfig, gauge: str | None,
     x[DIP] = math.radians(60.0)
     sig[DIP] = math.radians(30.0)
     return x, sig
+
+
+def reset_states(x: Array, P: Array, idx: slice | int | NDArray[np.intp], value: Array | float,
+                 cov: Array | float) -> None:
+    """Restart the states ``idx`` of (x (n,), P (n, n)) in place: value ``value``, covariance ``cov`` (a
+    matrix for a slice or index array, a variance for one index), uncorrelated with the rest."""
+    x[idx] = value
+    P[idx, :] = 0.0
+    P[:, idx] = 0.0
+    if isinstance(idx, np.ndarray):
+        P[np.ix_(idx, idx)] = cov
+    else:
+        P[idx, idx] = cov

@@ -60,55 +60,100 @@ def skew(v: ArrayLike) -> Array:
 
 
 def S_matrix(scale: ArrayLike) -> Array:
-    """Scale matrix S = diag(s_x, s_y, s_z) (eq. 2). Shape (3, 3)."""
-    return np.diag(np.asarray(scale, dtype=float))
+    """Scale matrix S = diag(s_x, s_y, s_z) (eq. 2): scale (..., 3) → (..., 3, 3)."""
+    s = np.asarray(scale, dtype=float)
+    out: Array = s[..., :, None] * np.eye(3)
+    return out
 
 
 def T_R(alpha: ArrayLike, exact: bool = True) -> Array:
-    """Rotation to the body frame, T_R(alpha) (eqs. 3–5).
+    """Rotation to the body frame, T_R(alpha) (eqs. 3–5): alpha (..., 3) rad → (..., 3, 3).
 
-    Exact: Rz(alpha_z) @ Ry(alpha_y) @ Rx(alpha_x) (eqs. 3–4), valid for any angle.
+    Exact: Rz(alpha_z) @ Ry(alpha_y) @ Rx(alpha_x) (eqs. 3–4), valid for any angle, multiplied out
+    (one closed form for any number of leading axes: the UKF evaluates it for all sigma points at once).
     Small-angle (``exact=False``): I + [alpha]_x (eq. 5).
-    ``alpha`` shape (3,) in rad; returns (3, 3).
     """
     a = np.asarray(alpha, dtype=float)
     if not exact:
-        return np.eye(3) + skew(a)
-    cx, cy, cz = np.cos(a)
-    sx, sy, sz = np.sin(a)
-    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
+        out: Array = np.eye(3) + skew(a)
+        return out
+    cf, sf = np.cos(a[..., 0]), np.sin(a[..., 0])
+    ct, st = np.cos(a[..., 1]), np.sin(a[..., 1])
+    cp, sp = np.cos(a[..., 2]), np.sin(a[..., 2])
+    R = np.empty(a.shape[:-1] + (3, 3))
+    R[..., 0, 0] = cp * ct
+    R[..., 0, 1] = cp * st * sf - sp * cf
+    R[..., 0, 2] = cp * st * cf + sp * sf
+    R[..., 1, 0] = sp * ct
+    R[..., 1, 1] = sp * st * sf + cp * cf
+    R[..., 1, 2] = sp * st * cf - cp * sf
+    R[..., 2, 0] = -st
+    R[..., 2, 1] = ct * sf
+    R[..., 2, 2] = ct * cf
+    return R
+
+
+def _axes_and_inverse(xi: ArrayLike) -> tuple[Array, Array]:
+    """Eq. 6: A (rows = unit sensing axes) and T_N = A⁻¹ for xi (..., 3); both (..., 3, 3).
+
+    A = [[1, 0, 0], [b, c, 0], [d, e, f]] with b = sin ξz, c = cos ξz, d = −sin ξy, e = sin ξx cos ξy,
+    f = cos ξx cos ξy; its inverse is written out (lower triangular), no matrix inversion.
+    """
+    x = np.asarray(xi, dtype=float)
+    sx, sy, sz = np.sin(x[..., 0]), np.sin(x[..., 1]), np.sin(x[..., 2])
+    cx, cy, cz = np.cos(x[..., 0]), np.cos(x[..., 1]), np.cos(x[..., 2])
+    b, c, d, e, f = sz, cz, -sy, sx * cy, cx * cy
+    A = np.zeros(x.shape[:-1] + (3, 3))
+    A[..., 0, 0] = 1.0
+    A[..., 1, 0], A[..., 1, 1] = b, c
+    A[..., 2, 0], A[..., 2, 1], A[..., 2, 2] = d, e, f
+    Ai = np.zeros(x.shape[:-1] + (3, 3))
+    Ai[..., 0, 0] = 1.0
+    Ai[..., 1, 0], Ai[..., 1, 1] = -b / c, 1.0 / c
+    Ai[..., 2, 0], Ai[..., 2, 1], Ai[..., 2, 2] = (b * e - c * d) / (c * f), -e / (c * f), 1.0 / f
+    return A, Ai
 
 
 def axes_matrix(xi: ArrayLike) -> Array:
-    """Rows are the unit sensing axes in the orthogonal sensor frame (the inverse of T_N, eq. 6)."""
-    xx, xy, xz = np.asarray(xi, dtype=float)
-    return np.array(
-        [
-            [1.0, 0.0, 0.0],
-            [math.sin(xz), math.cos(xz), 0.0],
-            [-math.sin(xy), math.sin(xx) * math.cos(xy), math.cos(xx) * math.cos(xy)],
-        ]
-    )
+    """Rows are the unit sensing axes in the orthogonal sensor frame (the inverse of T_N, eq. 6):
+    xi (..., 3) → (..., 3, 3)."""
+    return _axes_and_inverse(xi)[0]
 
 
 def T_N(xi: ArrayLike, exact: bool = True) -> Array:
-    """Non-orthogonality correction T_N(xi) (eq. 6). ``xi`` shape (3,) in rad; returns (3, 3).
+    """Non-orthogonality correction T_N(xi) (eq. 6): xi (..., 3) rad → (..., 3, 3).
 
-    Exact: inverse of :func:`axes_matrix` (lower triangular). Small-angle:
+    Exact: inverse of :func:`axes_matrix` (lower triangular, written out). Small-angle:
     ``[[1,0,0],[-xi_z,1,0],[xi_y,-xi_x,1]]``.
     """
     x = np.asarray(xi, dtype=float)
     if not exact:
-        return np.array([[1.0, 0, 0], [-x[2], 1.0, 0], [x[1], -x[0], 1.0]])
-    return np.linalg.inv(axes_matrix(x))
+        out = np.zeros(x.shape[:-1] + (3, 3))
+        out[..., 0, 0] = out[..., 1, 1] = out[..., 2, 2] = 1.0
+        out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = -x[..., 2], x[..., 1], -x[..., 0]
+        return out
+    return _axes_and_inverse(x)[1]
 
 
 def compose(scale: ArrayLike, alpha: ArrayLike, xi: ArrayLike, exact: bool = True) -> Array:
-    """Full correction matrix S · T_R(alpha) · T_N(xi) (eq. 1). Returns (3, 3)."""
-    return S_matrix(scale) @ T_R(alpha, exact) @ T_N(xi, exact)
+    """Full correction matrix S · T_R(alpha) · T_N(xi) (eq. 1): each argument (..., 3) → (..., 3, 3)."""
+    s = np.asarray(scale, dtype=float)
+    out: Array = s[..., :, None] * (T_R(alpha, exact) @ T_N(xi, exact))
+    return out
+
+
+def model_matrices(p: ArrayLike) -> tuple[Array, Array, Array]:
+    """The correction and the sensor model at once from the paper's 12 parameters (eqs. 1–6).
+
+    p (..., 12) = (o, s, alpha, xi). Returns o (..., 3), M = S·T_R·T_N and M⁻¹ = A·T_Rᵀ·diag(1/s)
+    (..., 3, 3) each (T_N⁻¹ = A, the axes matrix): ``calibrated = M (raw − o)``, ``raw = M⁻¹ c + o``,
+    with one T_R and one axes matrix and no matrix inversion.
+    """
+    q = np.asarray(p, dtype=float)
+    o, s, a, xi = q[..., 0:3], q[..., 3:6], q[..., 6:9], q[..., 9:12]
+    TR = T_R(a)
+    A, TN = _axes_and_inverse(xi)
+    return o, s[..., :, None] * (TR @ TN), (A @ np.swapaxes(TR, -1, -2)) / s[..., None, :]
 
 
 def _euler_zyx(R: Array) -> Array:

@@ -28,18 +28,29 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
-SCHEMA = "onlinecal.calibration/1"
+SCHEMA = "onlinecal.calibration/2"
+SCHEMAS_READ = (SCHEMA, "onlinecal.calibration/1")  # /1: no gauge, raw_units or health (migrated on load)
 SENSORS = ("gyro", "accel", "mag")
-UNITS = {"gyro": "rad/s", "accel": "m/s^2", "mag": "normalized"}
+UNITS = {"gyro": "rad/s", "accel": "m/s^2", "mag": "normalized"}  # calibrated (output) units
+# raw (input) units the biases are in: the readers' conventions (gyro and accel converted by the format;
+# the mag as the format delivers it — gauss for .tlog and .bin, the file's own unit for CSV)
+RAW_UNITS = {"gyro": "rad/s", "accel": "m/s^2", "mag": "as read"}
+# which frame B the calibration's alphas are relative to (eqs. 3–5; B is not observable from the data):
+# "accel" the accelerometer's frame, "gyro" the gyro's, "gyro_phases" the platform's rotation axes as the gyro
+# measured them (the batch's phase method, eqs. 28–31), "mag" the magnetometer's, "vehicle" a frame given
+# from outside (mounting); None: not fixed
+Gauge = Literal["accel", "gyro", "gyro_phases", "mag", "vehicle"]
+GAUGES: tuple[str, ...] = get_args(Gauge)
 PARAMS = ("bias", "scale", "alpha", "xi")
 
 Array = NDArray[np.float64]
@@ -204,6 +215,64 @@ def decompose(matrix: ArrayLike) -> tuple[Array, Array, Array]:
     return p[:3].copy(), p[3:6].copy(), p[6:].copy()
 
 
+class FrozenDict(dict[str, Any]):
+    """A dict that refuses every change (a calibration's meta, sigma, extensions). Still a ``dict`` (JSON,
+    ``isinstance`` checks and equality work as before); pickles and copies as itself."""
+
+    def _immutable(self, *a: Any, **k: Any) -> None:
+        raise TypeError("calibration data are immutable: build a new one with replace()")
+
+    __setitem__ = __delitem__ = clear = pop = popitem = setdefault = update = _immutable  # type: ignore[assignment]
+    __ior__ = _immutable  # type: ignore[assignment]
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (FrozenDict, (dict(self),))
+
+    def __hash__(self) -> int:  # type: ignore[override]
+        return id(self)
+
+
+class FrozenList(list[Any]):
+    """A list that refuses every change (see :class:`FrozenDict`)."""
+
+    def _immutable(self, *a: Any, **k: Any) -> None:
+        raise TypeError("calibration data are immutable: build a new one with replace()")
+
+    __setitem__ = __delitem__ = append = extend = insert = pop = remove = clear = sort = reverse = _immutable  # type: ignore[assignment]
+    __iadd__ = __imul__ = _immutable  # type: ignore[assignment]
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (FrozenList, (list(self),))
+
+    def __hash__(self) -> int:  # type: ignore[override]
+        return id(self)
+
+
+def freeze(v: Any) -> Any:
+    """Deep immutable copy: mappings → :class:`FrozenDict`, lists/tuples → :class:`FrozenList`, arrays →
+    read-only copies; other values as they are."""
+    if isinstance(v, Mapping):
+        return FrozenDict({k: freeze(x) for k, x in v.items()})
+    if isinstance(v, (list, tuple)):
+        return FrozenList(freeze(x) for x in v)
+    if isinstance(v, np.ndarray):
+        a = v.copy()
+        a.setflags(write=False)
+        return a
+    return v
+
+
+def thaw(v: Any) -> Any:
+    """Plain, mutable, JSON-able copy of a :func:`freeze`-d value (arrays → lists)."""
+    if isinstance(v, Mapping):
+        return {k: thaw(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [thaw(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return v
+
+
 def _as_vec(x: ArrayLike, name: str) -> Array:
     a = np.array(x, dtype=float).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
@@ -223,7 +292,7 @@ class SensorCalibration:
 
     bias: Array
     matrix: Array
-    sigma: dict[str, Any] = field(default_factory=dict)
+    sigma: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "bias", _as_vec(self.bias, "bias"))
@@ -232,8 +301,12 @@ class SensorCalibration:
             raise ValueError("matrix must be a finite 3x3 array")
         m.setflags(write=False)
         object.__setattr__(self, "matrix", m)
-        sig = {k: np.array(v, dtype=float) for k, v in dict(self.sigma).items()}
-        object.__setattr__(self, "sigma", sig)
+        sig = {}
+        for k, v in dict(self.sigma).items():
+            a = np.array(v, dtype=float)
+            a.setflags(write=False)
+            sig[k] = a
+        object.__setattr__(self, "sigma", FrozenDict(sig))
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -248,7 +321,7 @@ class SensorCalibration:
         alpha: ArrayLike = (0, 0, 0),
         xi: ArrayLike = (0, 0, 0),
         exact: bool = True,
-        sigma: dict[str, Any] | None = None,
+        sigma: Mapping[str, Any] | None = None,
     ) -> SensorCalibration:
         """Build from the paper's parameters (eq. 1)."""
         return cls(np.asarray(bias, float), compose(scale, alpha, xi, exact), sigma or {})
@@ -286,7 +359,7 @@ class SensorCalibration:
         """
         return SensorCalibration(-self.matrix @ self.bias, np.linalg.inv(self.matrix))
 
-    def with_sigma(self, sigma: dict[str, Any]) -> SensorCalibration:
+    def with_sigma(self, sigma: Mapping[str, Any]) -> SensorCalibration:
         return SensorCalibration(self.bias, self.matrix, sigma)
 
     def matrix_rel_error(self, other: SensorCalibration) -> float:
@@ -333,14 +406,32 @@ class SensorCalibration:
 
 @dataclass(frozen=True, eq=False)
 class Calibration:
-    """A whole IMU's calibration (gyro, accel, mag), as in the contract's calibration JSON."""
+    """A whole IMU's calibration (gyro, accel, mag), as in the contract's calibration JSON.
+
+    An immutable value: ``extensions``, ``meta`` and ``health`` are deep-frozen on construction
+    (:func:`freeze`), changes go through :meth:`replace`. ``gauge`` (:data:`Gauge`) says which frame B the
+    alphas are relative to — set by whoever fixed it (the batch: its method; the UKF: its consider states),
+    read by the UKF to decide which terms to hold. ``raw_units``: the units of the raw readings the biases are
+    in. ``health``: the filter's health summary, optional (filled by ``onlinecal run``/``replay``).
+    """
 
     gyro: SensorCalibration | None = None
     accel: SensorCalibration | None = None
     mag: SensorCalibration | None = None
     source: str = "batch"
-    extensions: dict[str, Any] = field(default_factory=dict)
-    meta: dict[str, Any] = field(default_factory=dict)
+    extensions: Mapping[str, Any] = field(default_factory=dict)
+    meta: Mapping[str, Any] = field(default_factory=dict)
+    gauge: Gauge | None = None
+    raw_units: Mapping[str, str] = field(default_factory=lambda: dict(RAW_UNITS))
+    health: Mapping[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        if self.gauge is not None and self.gauge not in GAUGES:
+            raise ValueError(f"gauge {self.gauge!r} is not one of {', '.join(GAUGES)}")
+        object.__setattr__(self, "extensions", freeze(self.extensions or {}))
+        object.__setattr__(self, "meta", freeze(self.meta or {}))
+        object.__setattr__(self, "raw_units", freeze(self.raw_units or RAW_UNITS))
+        object.__setattr__(self, "health", None if self.health is None else freeze(self.health))
 
     def sensor(self, name: str) -> SensorCalibration | None:
         return {"gyro": self.gyro, "accel": self.accel, "mag": self.mag}[name]
@@ -353,31 +444,45 @@ class Calibration:
             "source": self.source,
             "extensions": self.extensions,
             "meta": self.meta,
+            "gauge": self.gauge,
+            "raw_units": self.raw_units,
+            "health": self.health,
         }
         d.update(kw)
         return Calibration(**d)
 
     def to_dict(self) -> dict[str, Any]:
+        """The contract's JSON object (schema /2): plain, mutable copies of every field."""
         out: dict[str, Any] = {"schema": SCHEMA, "source": self.source}
         for s in SENSORS:
             c = self.sensor(s)
             if c is not None:
                 out[s] = c.to_dict()
-        out["extensions"] = self.extensions
+        out["extensions"] = thaw(self.extensions)
         out["units"] = dict(UNITS)
+        out["raw_units"] = thaw(self.raw_units)
+        out["gauge"] = self.gauge
+        if self.health is not None:
+            out["health"] = thaw(self.health)
         if self.meta:
-            out["meta"] = self.meta
+            out["meta"] = thaw(self.meta)
         return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Calibration:
-        if d.get("schema") != SCHEMA:
-            raise ValueError(f"schema is {d.get('schema')!r}, expected {SCHEMA!r}")
+        """Inverse of :meth:`to_dict`; reads schema /2 and /1 (:data:`SCHEMAS_READ`)."""
+        if d.get("schema") not in SCHEMAS_READ:
+            raise ValueError(f"schema is {d.get('schema')!r}, expected one of {', '.join(SCHEMAS_READ)}")
         kw = {s: SensorCalibration.from_dict(d[s]) for s in SENSORS if d.get(s)}
+        meta = d.get("meta", {}) or {}
+        gauge = d.get("gauge") if d["schema"] == SCHEMA else _gauge_of_v1(meta)
         return cls(
             source=d.get("source", "batch"),
             extensions=d.get("extensions", {}) or {},
-            meta=d.get("meta", {}) or {},
+            meta=meta,
+            gauge=gauge,
+            raw_units=d.get("raw_units") or RAW_UNITS,
+            health=d.get("health"),
             **kw,
         )
 
@@ -408,4 +513,18 @@ class Calibration:
             and self.mag == other.mag
             and self.source == other.source
             and self.extensions == other.extensions
+            and self.gauge == other.gauge
+            and self.raw_units == other.raw_units
+            and self.health == other.health
         )
+
+
+def _gauge_of_v1(meta: Mapping[str, Any]) -> Gauge | None:
+    """Migration of a schema /1 file, which had no gauge field: a batch result whose gyro came from its
+    rotation phases defined B by them ("gyro_phases"); otherwise unknown (None). Only for /1 files — /2
+    files carry the field, and nothing else reads the report's wording."""
+    try:
+        method = meta["batch"]["steps"]["gyro"]["figures"]["method"]
+    except (KeyError, TypeError):
+        return None
+    return "gyro_phases" if isinstance(method, str) and method.startswith("phases") else None

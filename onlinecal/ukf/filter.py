@@ -639,7 +639,7 @@ class OnlineCalibrator:
         the model extensions (``extensions``, the contract's effect keys) with their σ."""
         meta = {"mag_used": bool(self.mag_enabled), "imu_samples": self._n_imu, "blocks": self._n_blocks,
                 "quantisation": dict(self._lat.q or {}), "events": list(self.events), "nis": self.nis_summary()}
-        return calibration_of(self.x, self.sigma(), self.lay, meta, self.extensions())
+        return calibration_of(self.x, self.sigma(), self.lay, meta, self.extensions(), self.init)
 
     def extensions(self) -> dict[str, Any]:
         """Estimated model extensions in the effect vocabulary (:func:`.outputs.extensions_of`)."""

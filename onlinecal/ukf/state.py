@@ -90,14 +90,9 @@ class StateLayout:
 
 
 def batch_gyro_from_phases(init: Calibration | None) -> bool:
-    """Whether ``init`` is a batch result whose gyro came from its rotation phases."""
-    if init is None:
-        return False
-    try:
-        m = init.meta["batch"]["steps"]["gyro"]["figures"]["method"]
-    except (AttributeError, KeyError, TypeError):
-        return False
-    return isinstance(m, str) and m.startswith("phases") and init.gyro is not None
+    """Whether ``init``'s B is the platform's rotation axes as its gyro measured them (``gauge`` field
+    "gyro_phases", set by the batch's phase method), with a gyro to hold."""
+    return init is not None and init.gauge == "gyro_phases" and init.gyro is not None
 
 
 def choose_gauge(init: Calibration | None, config: UKFConfig) -> tuple[str | None, tuple[str, ...]]:

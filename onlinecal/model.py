@@ -26,6 +26,7 @@ Angles are radians throughout.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Mapping
@@ -238,7 +239,7 @@ class FrozenList(list[Any]):
     def _immutable(self, *a: Any, **k: Any) -> None:
         raise TypeError("calibration data are immutable: build a new one with replace()")
 
-    __setitem__ = __delitem__ = append = extend = insert = pop = remove = clear = sort = reverse = _immutable  # type: ignore[assignment]
+    __setitem__ = __delitem__ = append = extend = insert = pop = remove = clear = sort = reverse = _immutable
     __iadd__ = __imul__ = _immutable  # type: ignore[assignment]
 
     def __reduce__(self) -> tuple[Any, ...]:
@@ -357,7 +358,7 @@ class SensorCalibration:
 
         It is again of the form ``M' (c − o')`` with ``M' = M⁻¹`` and ``o' = −M o``.
         """
-        return SensorCalibration(-self.matrix @ self.bias, np.linalg.inv(self.matrix))
+        return SensorCalibration(-self.matrix @ self.bias, np.asarray(np.linalg.inv(self.matrix), float))
 
     def with_sigma(self, sigma: Mapping[str, Any]) -> SensorCalibration:
         return SensorCalibration(self.bias, self.matrix, sigma)
@@ -437,19 +438,7 @@ class Calibration:
         return {"gyro": self.gyro, "accel": self.accel, "mag": self.mag}[name]
 
     def replace(self, **kw: Any) -> Calibration:
-        d = {
-            "gyro": self.gyro,
-            "accel": self.accel,
-            "mag": self.mag,
-            "source": self.source,
-            "extensions": self.extensions,
-            "meta": self.meta,
-            "gauge": self.gauge,
-            "raw_units": self.raw_units,
-            "health": self.health,
-        }
-        d.update(kw)
-        return Calibration(**d)
+        return dataclasses.replace(self, **kw)
 
     def to_dict(self) -> dict[str, Any]:
         """The contract's JSON object (schema /2): plain, mutable copies of every field."""
@@ -473,18 +462,12 @@ class Calibration:
         """Inverse of :meth:`to_dict`; reads schema /2 and /1 (:data:`SCHEMAS_READ`)."""
         if d.get("schema") not in SCHEMAS_READ:
             raise ValueError(f"schema is {d.get('schema')!r}, expected one of {', '.join(SCHEMAS_READ)}")
-        kw = {s: SensorCalibration.from_dict(d[s]) for s in SENSORS if d.get(s)}
+        sens = {s: SensorCalibration.from_dict(d[s]) if d.get(s) else None for s in SENSORS}
         meta = d.get("meta", {}) or {}
         gauge = d.get("gauge") if d["schema"] == SCHEMA else _gauge_of_v1(meta)
-        return cls(
-            source=d.get("source", "batch"),
-            extensions=d.get("extensions", {}) or {},
-            meta=meta,
-            gauge=gauge,
-            raw_units=d.get("raw_units") or RAW_UNITS,
-            health=d.get("health"),
-            **kw,
-        )
+        return cls(sens["gyro"], sens["accel"], sens["mag"], source=d.get("source", "batch"),
+                   extensions=d.get("extensions", {}) or {}, meta=meta, gauge=gauge,
+                   raw_units=d.get("raw_units") or RAW_UNITS, health=d.get("health"))
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)

@@ -25,7 +25,7 @@ Array = NDArray[np.float64]
 E_Z = np.array([0.0, 0.0, 1.0])
 
 
-def initial_attitude(f: Array, h: Array | None, h_world: Array, s_rp: float, s_y: float) -> tuple[Array, Array]:
+def initial_attitude(f: Array, h: Array | None, h_world: Array | None, s_rp: float, s_y: float) -> tuple[Array, Array]:
     """Attitude R (world ← body) (3, 3) from the unit specific force f (3,) and the unit field h (3,) in
     the body frame (TRIAD against e_z and ``h_world``), and the covariance (3, 3) of the body-frame
     attitude error for σ ``s_rp`` (roll, pitch) and ``s_y`` (heading) about the world axes.
@@ -33,7 +33,7 @@ def initial_attitude(f: Array, h: Array | None, h_world: Array, s_rp: float, s_y
     ``h`` None (no calibrated mag): the yaw is arbitrary (the body x axis is put east) and ``s_y`` should
     be diffuse.
     """
-    if h is None:
+    if h is None or h_world is None:
         h = np.array([1.0, 0.0, 0.0]) if abs(f[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
         h_world = np.array([1.0, 0.0, 0.0])
     R = triad(f, h, E_Z, h_world)

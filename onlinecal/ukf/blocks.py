@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from ..io.base import ImuData
 
 Array = NDArray[np.float64]
+Index = NDArray[np.intp]
 
 
 def value_lattice(v: Array) -> float:
@@ -42,7 +43,7 @@ def value_lattice(v: Array) -> float:
     return q if float(np.max(np.abs(k - np.round(k)))) < 1e-6 else 0.0
 
 
-def third_diff_var(v: Array, t: Array, seg: Array, n_seg: int, min_windows: int = 3) -> Array:
+def third_diff_var(v: Array, t: Array, seg: Index, n_seg: int, min_windows: int = 3) -> Array:
     """Per-segment white-noise variance from third differences: median |Δ³v|² / (3·20·0.789), (n_seg,).
 
     v (N, 3) samples at times t (N,) s, seg (N,) the segment (filter block) of each sample, ascending.
@@ -73,7 +74,7 @@ def third_diff_var(v: Array, t: Array, seg: Array, n_seg: int, min_windows: int 
     return out
 
 
-def _seg_mean_std(v: Array, lo: Array, cnt: Array) -> tuple[Array, Array]:
+def _seg_mean_std(v: Array, lo: Index, cnt: Index) -> tuple[Array, Array]:
     """Mean and standard deviation (ddof 0) per axis of the segments [lo, lo + cnt) of v (N, 3), which
     follow each other without holes; (n_seg, 3) each, NaN for empty segments. Sums per segment
     (np.add.reduceat), so a segment's figures do not depend on where the buffer it sits in starts."""
@@ -103,10 +104,10 @@ class Blocks:
     spreads (n_b, 3), the third-difference noise variances (n_b,), the jerk term Σ|Δ²ω·Δt/4|² and its count, the largest
     |reading| per axis; per mag sample its interpolation index into [t_prev, t] and fraction."""
 
-    lo: Array
-    hi: Array
-    mlo: Array
-    mhi: Array
+    lo: Index
+    hi: Index
+    mlo: Index
+    mhi: Index
     w_ext: Array
     dt: Array
     w_mean: Array
@@ -120,7 +121,7 @@ class Blocks:
     jerk_n: Array
     w_absmax: Array
     a_absmax: Array
-    m_j: Array
+    m_j: Index
     m_frac: Array
 
 
@@ -256,7 +257,7 @@ class RestDetector:
     a magnetometer cannot be told from rest (nothing measures it). State: the previous block's means, the
     count of still blocks in a row, whether the last block was still."""
 
-    prev_means: tuple[Any, Any, Any] | None = None
+    prev_means: tuple[Any, ...] | None = None
     count: int = 0
     still: bool = False
 
@@ -294,7 +295,7 @@ class HoldTracker:
 
     held: dict[str, bool] = field(default_factory=lambda: {"accel": False, "mag": False})
 
-    def flags(self, B: Blocks, b: int, n: dict[str, float], q: dict[str, Any], prev: tuple[Any, Any, Any] | None,
+    def flags(self, B: Blocks, b: int, n: dict[str, float], q: dict[str, Any], prev: tuple[Any, ...] | None,
               sensors: tuple[str, ...]) -> tuple[dict[str, bool], list[str], bool]:
         """Held flags of block ``b``, the sensors whose hold offset restarts, and whether a held reading
         started anew. ``prev``: the previous block's means (:attr:`RestDetector.prev_means`, read before

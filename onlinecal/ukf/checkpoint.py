@@ -84,8 +84,8 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
     f._log.total = int(d["n_events"])
     f._trace = deque(d["trace"], maxlen=c.trace_max_rows)
     pm = d.get("prev_means")
-    f._rest_det = RestDetector(None if pm is None else tuple(None if v is None else np.asarray(v, float) for v in pm),
-                               int(d.get("rest_count", 0)))
+    prev = None if pm is None else (*(None if v is None else np.asarray(v, float) for v in pm),)
+    f._rest_det = RestDetector(prev, int(d.get("rest_count", 0)))
     f._lat = Lattice(d["q"], [list(v) for v in d["q_mag_buf"]])
     f._holds = HoldTracker({k: bool(v) for k, v in d["held"].items()})
     f._noise.ratio = {k: float(v) for k, v in d["noise_ratio"].items()}

@@ -455,14 +455,15 @@ class OnlineCalibrator:
         c_mag = None
         if use_mag:
             k0, n_m = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
-            c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], j - i)
+            c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], j - i)  # type: ignore[arg-type]
         Sd = dyn.shape[0]
         o_all, M_all, Minv_all = model_pair(np.concatenate(
             [X[dyn, SENSOR_SLICE["gyro"]], X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
         off = self._offsets("gyro", self._rest_det.still)
         extra = gyro_offsets(X[dyn], off, self._temp_reg(T) if off.temp is not None else None,
                              self._calibrated("accel", a) if off.gsens is not None else None, T.shape[0])
-        pred = propagate_block(X, self.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, dyn,
+        pred = propagate_block(X, self.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag,
+                               dyn,  # type: ignore[arg-type]  # (propagate.py annotates an index array as float)
                                (o_all[:Sd], M_all[:Sd]), extra)
         # sigma point 0 is the mean; the points outside dyn share its attitude history (error stays 0)
         X[dyn, ATT] = rot_log(pred.R_end[0].T @ pred.R_end)
@@ -472,7 +473,7 @@ class OnlineCalibrator:
         """Process noise of the block: :meth:`_process_noise`, plus the trapezoid's error where the rate
         is not smooth (Δt·|Δ²ω|/4 per sample, less the white noise's own E[Δ²n]² = 6σ², so that rest and
         smooth motion add ~0), plus the bilinear allowance (:func:`.noise.bilinear_var`)."""
-        dt_blk = float(t[-1] - self._t_last)  # type: ignore[operator]
+        dt_blk = float(t[-1] - self._t_last)
         q = self._process_noise(dt_blk, n["gyro"])
         L = t.size
         if L >= 2:
@@ -523,7 +524,7 @@ class OnlineCalibrator:
         first = acc is None
         if acc is None:
             acc = self._rest_acc = RestAccumulator.start(self.x, self.P, self.R_nom, held, use_mag)
-        acc.q += self._process_noise(float(t[-1] - self._t_last), n["gyro"])  # type: ignore[operator]
+        acc.q += self._process_noise(float(t[-1] - self._t_last), n["gyro"])
         for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
             self._nis_record(s, nis, tl)
         acc.add(B, b, n, not clip["accel"], use_mag, self._temp_reg(T) if self._has_temp() else None)

@@ -87,9 +87,10 @@ class RestAccumulator:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RestAccumulator:
-        kw = {k: (np.asarray(v, float) if k in _ARRAYS else v) for k, v in d.items() if k != "post"}
+        a = {k: np.asarray(d[k], float) for k in _ARRAYS}
         post = {k: (np.asarray(v[0], float), np.asarray(v[1], float)) for k, v in d["post"].items()}
-        return cls(**kw, post=post)
+        return cls(a["x"], a["P"], a["R_nom"], dict(d["held"]), bool(d["use_mag"]), a["q"], a["sa"], float(d["na"]),
+                   a["sm"], float(d["nm"]), a["sw"], float(d["nw"]), float(d["sT"]), int(d["nT"]), post)
 
     def sequential_nis(self, B: Blocks, b: int, n: dict[str, float], use_acc: bool,
                        use_mag: bool) -> list[tuple[str, float]]:

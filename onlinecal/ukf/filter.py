@@ -40,7 +40,7 @@ from .blocks import value_lattice as value_lattice
 from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
 from .geometry import rodrigues1
 from .health import EventLog, NisMonitor
-from .layout import ATT, AXES, DIP, N_STATE, SENSOR_SLICE, correction, field_world, index, model_pair
+from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, field_world, index, model_pair
 from .measurements import (
     AccelModel,
     MagModel,
@@ -56,7 +56,7 @@ from .noise import hold_sigma as hold_sigma  # re-exported
 from .outputs import calibration_of, extensions_of, extensions_sigma, missing_motion, observability, trace_row
 from .predict import block_process_noise, propagate_sigma_points
 from .rest import RestAccumulator
-from .state import StateLayout, choose_gauge, prior, reset_states
+from .state import StateLayout, choose_gauge, grow, initial_state, prior, reset_states
 from .unscented import Gating, Measurement, UpdateResult, merwe_weights, predict_moments, sigma_points, update
 
 Array = NDArray[np.float64]
@@ -137,17 +137,7 @@ class OnlineCalibrator:
         c = self.config
         self._set_layout()
         self._hold_sigma: dict[str, float] = {}
-        x0, sig0 = self._prior()
-        n = self.n
-        self.x = np.zeros(n)
-        sig = np.zeros(n)
-        self.x[:N_STATE], sig[:N_STATE] = x0, sig0
-        for e, sl in self.lay.ext_slice.items():
-            sig[sl] = EXTENSIONS[e][1]
-        self.prior_sigma = sig.copy()
-        self.prior_x = self.x.copy()
-        sig[ATT] = 0.1
-        self.P = np.diag(sig**2)
+        self.x, self.P, self.prior_x, self.prior_sigma = initial_state(self.lay, *self._prior())
         self.R_nom = np.eye(3)
         self.mag_enabled = self.init is not None and self.init.mag is not None
         self.dip_known = False
@@ -167,16 +157,9 @@ class OnlineCalibrator:
     def _add_hold(self, sensor: str, sigma: float) -> None:
         """Append the 3 hold-offset states of ``sensor`` (0 ± sigma), or reset them if present."""
         if sensor not in self.lay.hold_slice:
-            n0 = self.n
             self._set_layout(self.lay.holds + (sensor,))
-            n1 = self.n
-            x = np.zeros(n1)
-            x[:n0] = self.x
-            P = np.zeros((n1, n1))
-            P[:n0, :n0] = self.P
-            self.x, self.P = x, P
-            self.prior_x = np.concatenate([self.prior_x, np.zeros(n1 - n0)])
-            self.prior_sigma = np.concatenate([self.prior_sigma, np.zeros(n1 - n0)])
+            self.x, self.P, self.prior_x, self.prior_sigma = grow(self.x, self.P, self.prior_x, self.prior_sigma,
+                                                                  self.n)
         self._hold_sigma[sensor] = sigma
         self._reset_hold(sensor)
 

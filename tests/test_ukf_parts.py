@@ -326,3 +326,21 @@ def test_ellipsoid_fit_recovers_hard_and_soft_iron_within_its_budget():
     t0 = time.process_time()
     ellipsoid_gn(flat, flat.mean(axis=0), np.eye(3))
     assert time.process_time() - t0 < 1.0
+
+
+def test_align_gauge_turns_every_sensor_by_one_rotation():
+    """align_gauge gives the chosen sensor the asked alpha and leaves every relative orientation (M_s M_acc⁻¹)
+    and every bias as it was."""
+    from onlinecal.ukf.gauge import align_gauge
+
+    sens = {s: _cal(_params(1)[0]) for s in ("gyro", "accel", "mag")}
+    cal = Calibration(**sens)
+    target = np.array([0.01, -0.02, 0.005])
+    out = align_gauge(cal, "accel", target)
+    assert np.allclose(out.accel.alpha, target, atol=1e-10)
+    for s in ("gyro", "mag"):
+        rel0 = cal.sensor(s).matrix @ np.linalg.inv(cal.accel.matrix)
+        rel1 = out.sensor(s).matrix @ np.linalg.inv(out.accel.matrix)
+        assert np.allclose(rel0, rel1, atol=1e-12) and np.array_equal(out.sensor(s).bias, cal.sensor(s).bias)
+    Q = out.gyro.matrix @ np.linalg.inv(cal.gyro.matrix)
+    assert np.allclose(Q @ Q.T, np.eye(3), atol=1e-12) and np.linalg.det(Q) == pytest.approx(1.0)

@@ -235,7 +235,7 @@ def ellipsoid_gn(x: Array, o0: Array, M0: Array, max_iter: int = 40,
     r, J = resid_jac(p, x[keep])
     s2 = float(r @ r) / max(1, int(keep.sum()) - 9)
     try:
-        cov = np.linalg.inv(J.T @ J) * s2
+        cov: Array = np.asarray(np.linalg.inv(J.T @ J) * s2, float)
     except np.linalg.LinAlgError:
         cov = np.full((9, 9), np.inf)
     M = np.zeros((3, 3))

@@ -98,7 +98,6 @@ class OnlineCalibrator:
         self._lat = Lattice()  # per log: value lattice of each sensor
         self._rails = RailDetector()
         self._T0: float | None = None
-        self._n_resets = 0  # divergences so far: a step whose update diverged does not commit its posterior
         self._reset_calibration()
 
     def _configure(self) -> None:
@@ -458,10 +457,8 @@ class OnlineCalibrator:
             self._commit(x_pred, P_pred, tl)
             return
         # not at rest (rests go to _rest_step): an accel outlier is motion the model lacks, dropped
-        k = self._n_resets
         res = self._update(Y, x_pred, P_pred, meas, False, tl, damp=self.config.update_damping)
-        if self._n_resets == k:  # else the NIS windows declared a divergence: the re-initialised state stands
-            self._commit(res.x, res.P, tl)
+        self._commit(res.x, res.P, tl)
 
     def _rest_step(self, B: Blocks, b: int, t: Array, T: Array, n: dict[str, float], held: dict[str, bool],
                    use_mag: bool, clip: dict[str, bool]) -> None:
@@ -479,11 +476,8 @@ class OnlineCalibrator:
         if acc is None:
             acc = self._rest_acc = RestAccumulator.start(self.x, self.P, self.R_nom, held, use_mag)
         acc.q += self._process_noise(float(t[-1] - self._t_last), n["gyro"])
-        k = self._n_resets
         for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
             self._nis_record(s, nis, tl)
-        if self._n_resets != k:
-            return  # a divergence: the re-initialised state stands (not the rest's first state)
         acc.add(B, b, n, not clip["accel"], use_mag, self._temp_reg(T) if self._has_temp() else None)
         x0, P0 = acc.x, acc.P + np.diag(acc.q)
         self.x, self.P, self.R_nom = x0.copy(), P0, acc.R_nom
@@ -499,8 +493,7 @@ class OnlineCalibrator:
                                  float(np.mean(self.x[index("gyro", "scale")])))
         res = self._update(X - x0, x0, P0, meas, True, tl, record=first, post=True)
         acc.post = res.post
-        if self._n_resets == k:  # a divergence in the update also ended the running rest (_reset_calibration)
-            self._commit(res.x, res.P, tl)
+        self._commit(res.x, res.P, tl)  # a divergence there also ends the running rest (_reset_calibration)
 
     def _end_rest(self) -> None:
         """Close the running rest (:meth:`_rest_step`): its last state stays."""
@@ -562,7 +555,6 @@ class OnlineCalibrator:
     def _diverged(self, why: str, t: float, sensor: str | None = None) -> None:
         """Re-initialise: only the magnetometer (its terms and the dip, from the init or a new cold fit)
         when its NIS alone ran away, otherwise every calibration state from the init calibration."""
-        self._n_resets += 1
         if sensor != "mag":
             self._event("divergence", why + "; re-initialised from the init calibration", t)
             self._reset_calibration()

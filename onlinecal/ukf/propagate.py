@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from . import kernels
 from .layout import (
     ATT,
     DIP,
@@ -89,7 +90,27 @@ def propagate_block(
     gyro: tuple[Array, Array],
     b_extra: Array | None = None,
 ) -> BlockPrediction:
-    """Integrate the attitude of every sigma point over one block of L IMU samples.
+    """Integrate the attitude of every sigma point over one block of L IMU samples (arguments and result:
+    :func:`propagate_block_numpy`), on the backend of :mod:`onlinecal.ukf.kernels` (``ONLINECAL_KERNELS``):
+    the compiled kernel, or the numpy reference."""
+    if kernels.backend() == "numpy":
+        return propagate_block_numpy(X, R_nom, w, dt, c_mag, dyn, gyro, b_extra)
+    o_g, M_g = gyro
+    R_end, f_body, h_body = kernels.propagate_numba(X, R_nom, w, dt, c_mag, dyn, o_g, M_g, b_extra, DIP)
+    return BlockPrediction(R_end, f_body, h_body, o_g[0], M_g[0])
+
+
+def propagate_block_numpy(
+    X: Array,
+    R_nom: Array,
+    w: Array,
+    dt: Array,
+    c_mag: Array | None,
+    dyn: Array,
+    gyro: tuple[Array, Array],
+    b_extra: Array | None = None,
+) -> BlockPrediction:
+    """Integrate the attitude of every sigma point over one block of L IMU samples (numpy reference).
 
     X (S, n) sigma points (δθ in X[:, 0:3], the gyro terms in X[:, 3:15], the dip in X[:, 39]);
     R_nom (3, 3) nominal attitude; w (L + 1, 3) rad/s the raw rates at the block's L samples and the one

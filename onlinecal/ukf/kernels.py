@@ -76,7 +76,7 @@ try:
         numba.core.config.reload_config()
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - numba is a dependency; the numpy path still works without it
-    numba = None
+    numba = None  # type: ignore[assignment]
     HAVE_NUMBA = False
 
 
@@ -84,7 +84,7 @@ def _njit(fn: Callable[..., Any]) -> Callable[..., Any]:
     """``numba.njit(cache=True)`` (no parallelism: one core), or the plain function without numba."""
     if not HAVE_NUMBA:
         return fn
-    return numba.njit(cache=True, nogil=True)(fn)  # type: ignore[no-any-return]
+    return numba.njit(cache=True, nogil=True)(fn)
 
 
 _backend = os.environ.get("ONLINECAL_KERNELS", "numba" if HAVE_NUMBA else "numpy").strip().lower()
@@ -268,7 +268,7 @@ _EMPTY1 = np.zeros(1)
 _EMPTY3 = np.zeros((1, 1, 3))
 
 
-def propagate_numba(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array | None, dyn: NDArray[np.intp],
+def propagate_numba(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array | None, dyn: NDArray[Any],
                     o_g: Array, M_g: Array, b_extra: Array | None,
                     dip_col: int) -> tuple[Array, Array, Array | None]:
     """:func:`propagate_kernel` with numpy-friendly arguments (None for no mag / no extra bias): (R_end
@@ -283,3 +283,277 @@ def propagate_numba(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array | 
         np.ascontiguousarray(M_g, dtype=np.float64),
         np.ascontiguousarray(b_extra, dtype=np.float64) if has_extra else _EMPTY3, has_extra, dip_col)
     return R_end, f_body, (h_body if has_mag else None)
+
+
+# ------------------------------------------------------------------------------------------------
+# sensor model (reference: onlinecal.ukf.layout.model_pair, eqs. 1–6)
+@_njit
+def model_pair_kernel(p: Array) -> tuple[Array, Array, Array]:
+    """(o, M, M⁻¹) of the sensor model for N parameter rows p (N, 12) = (o, s, alpha, xi): o (N, 3),
+    M = S·T_R(alpha)·T_N(xi) and M⁻¹ = A·T_Rᵀ·S⁻¹ (N, 3, 3); T_R = Rz Ry Rx (eqs. 3–4), A the axes
+    matrix of eq. 6 and T_N = A⁻¹ written out (lower triangular)."""
+    N = p.shape[0]
+    o = np.empty((N, 3))
+    M = np.empty((N, 3, 3))
+    Mi = np.empty((N, 3, 3))
+    TR = np.empty((3, 3))
+    A = np.zeros((3, 3))
+    Ai = np.zeros((3, 3))
+    for n in range(N):
+        for i in range(3):
+            o[n, i] = p[n, i]
+        cf, sf = math.cos(p[n, 6]), math.sin(p[n, 6])
+        ct, st = math.cos(p[n, 7]), math.sin(p[n, 7])
+        cp, sp = math.cos(p[n, 8]), math.sin(p[n, 8])
+        TR[0, 0] = cp * ct
+        TR[0, 1] = cp * st * sf - sp * cf
+        TR[0, 2] = cp * st * cf + sp * sf
+        TR[1, 0] = sp * ct
+        TR[1, 1] = sp * st * sf + cp * cf
+        TR[1, 2] = sp * st * cf - cp * sf
+        TR[2, 0] = -st
+        TR[2, 1] = ct * sf
+        TR[2, 2] = ct * cf
+        sx, sy, sz = math.sin(p[n, 9]), math.sin(p[n, 10]), math.sin(p[n, 11])
+        cx, cy, cz = math.cos(p[n, 9]), math.cos(p[n, 10]), math.cos(p[n, 11])
+        b, c, d, e, f = sz, cz, -sy, sx * cy, cx * cy
+        A[0, 0] = 1.0
+        A[1, 0], A[1, 1] = b, c
+        A[2, 0], A[2, 1], A[2, 2] = d, e, f
+        Ai[0, 0] = 1.0
+        Ai[1, 0], Ai[1, 1] = -b / c, 1.0 / c
+        Ai[2, 0], Ai[2, 1], Ai[2, 2] = (b * e - c * d) / (c * f), -e / (c * f), 1.0 / f
+        for i in range(3):
+            si = p[n, 3 + i]
+            for j in range(3):
+                M[n, i, j] = si * (TR[i, 0] * Ai[0, j] + TR[i, 1] * Ai[1, j] + TR[i, 2] * Ai[2, j])
+                Mi[n, i, j] = (A[i, 0] * TR[j, 0] + A[i, 1] * TR[j, 1] + A[i, 2] * TR[j, 2]) / p[n, 3 + j]
+    return o, M, Mi
+
+
+# ------------------------------------------------------------------------------------------------
+# rotations (reference: onlinecal.ukf.layout.rot_log)
+@_njit
+def rot_log_rel_kernel(R: Array) -> Array:
+    """Rotation vectors of R[0]ᵀ R[s] for R (S, 3, 3) → (S, 3) (angles below π; a/sin a by its series
+    below 1e-8): the attitude error of every propagated sigma point relative to the mean's (row 0)."""
+    S = R.shape[0]
+    out = np.empty((S, 3))
+    D = np.empty((3, 3))
+    for s in range(S):
+        for i in range(3):
+            for j in range(3):
+                D[i, j] = R[0, 0, i] * R[s, 0, j] + R[0, 1, i] * R[s, 1, j] + R[0, 2, i] * R[s, 2, j]
+        v0 = 0.5 * (D[2, 1] - D[1, 2])
+        v1 = 0.5 * (D[0, 2] - D[2, 0])
+        v2 = 0.5 * (D[1, 0] - D[0, 1])
+        sn = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        cs = 0.5 * (D[0, 0] + D[1, 1] + D[2, 2] - 1.0)
+        a = math.atan2(sn, cs)
+        k = a / sn if sn > 1e-8 else 1.0 + a * a / 6.0
+        out[s, 0], out[s, 1], out[s, 2] = v0 * k, v1 * k, v2 * k
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# the unscented transform and the update (reference: OnlineCalibrator._sigma_points, _step, _update)
+@_njit
+def cholesky_kernel(A: Array) -> tuple[Array, bool]:
+    """Lower Cholesky factor L (n, n) of a symmetric A = L Lᵀ, and whether A was positive definite (a
+    non-positive or non-finite pivot: False, L incomplete) — LAPACK potrf's condition."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:  # also catches NaN
+            return L, False
+        ljj = math.sqrt(d)
+        L[j, j] = ljj
+        inv = 1.0 / ljj
+        for i in range(j + 1, n):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc * inv
+    return L, True
+
+
+@_njit
+def sigma_points_kernel(x: Array, P: Array, scale: float, perm: NDArray[np.intp]) -> tuple[Array, bool]:
+    """Scaled sigma points X (2n + 1, n): x, x + D_r, x − D_r, the rows D_r of the Cholesky factor of
+    scale·P taken in ``perm`` order (U = chol(scale·P[perm][:, perm])ᵀ, D[:, perm] = U), and whether scale·P
+    was positive definite. Wan & van der Merwe (2000), scale = λ + n."""
+    n = x.shape[0]
+    A = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = scale * P[perm[i], perm[j]]
+    L, ok = cholesky_kernel(A)
+    X = np.empty((2 * n + 1, n))
+    for j in range(n):
+        X[0, j] = x[j]
+    for r in range(n):
+        for c in range(n):
+            pc = perm[c]
+            u = L[c, r]  # U[r, c] = Lᵀ
+            X[1 + r, pc] = x[pc] + u
+            X[1 + n + r, pc] = x[pc] - u
+    return X, ok
+
+
+@_njit
+def unscented_kernel(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, Array, Array]:
+    """Predicted mean x_pred = Σ Wm_s X_s (n,), deviations Y = X − x_pred (S, n) and covariance
+    P_pred = Σ Wc_s Y_sᵀ Y_s + diag(q) (n, n) (the unscented transform; q the process noise variances)."""
+    S, n = X.shape
+    x_pred = np.zeros(n)
+    for s in range(S):
+        w = Wm[s]
+        for j in range(n):
+            x_pred[j] += w * X[s, j]
+    Y = np.empty((S, n))
+    for s in range(S):
+        for j in range(n):
+            Y[s, j] = X[s, j] - x_pred[j]
+    P = np.zeros((n, n))
+    for s in range(S):
+        w = Wc[s]
+        for i in range(n):
+            wi = w * Y[s, i]
+            for j in range(i, n):
+                P[i, j] += wi * Y[s, j]
+    for i in range(n):
+        P[i, i] += q[i]
+        for j in range(i + 1, n):
+            P[j, i] = P[i, j]
+    return x_pred, Y, P
+
+
+@_njit
+def innovation_kernel(Y: Array, Z: Array, z: Array, Wm: Array, Wc: Array,
+                      r_diag: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """Statistics of the stacked measurement for the UKF update: z_pred = Σ Wm_s Z_s (m,),
+    S_zz = Σ Wc_s Zc_sᵀ Zc_s + diag(r) (m, m), hph = diag of its first term (m,), Pxz = Σ Wc_s Y_sᵀ Zc_s
+    (n, m), ν = z − z_pred (m,), and the NIS νᵀ S⁻¹ ν of every consecutive 3-block (m/3,) (all +inf if
+    any block is singular). Y (S, n) sigma deviations from the predicted mean, Z (S, m) predicted readings."""
+    S, m = Z.shape
+    n = Y.shape[1]
+    z_pred = np.zeros(m)
+    for s in range(S):
+        for j in range(m):
+            z_pred[j] += Wm[s] * Z[s, j]
+    Zc = np.empty((S, m))
+    for s in range(S):
+        for j in range(m):
+            Zc[s, j] = (Z[s, j] - z_pred[j]) * Wc[s]
+    S_zz = np.zeros((m, m))
+    Pxz = np.zeros((n, m))
+    for s in range(S):
+        for i in range(m):
+            zi = Z[s, i] - z_pred[i]
+            for j in range(i, m):
+                S_zz[i, j] += zi * Zc[s, j]
+        for i in range(n):
+            yi = Y[s, i]
+            for j in range(m):
+                Pxz[i, j] += yi * Zc[s, j]
+    hph = np.empty(m)
+    for i in range(m):
+        hph[i] = S_zz[i, i]
+        S_zz[i, i] += r_diag[i]
+        for j in range(i + 1, m):
+            S_zz[j, i] = S_zz[i, j]
+    nu = z - z_pred
+    nb = m // 3
+    nis = np.empty(nb)
+    B = np.empty((3, 3))
+    for k in range(nb):
+        for i in range(3):
+            for j in range(3):
+                B[i, j] = S_zz[3 * k + i, 3 * k + j]
+        sol, ok = _solve_small(B, nu[3 * k : 3 * k + 3].copy().reshape(3, 1))
+        if not ok:
+            nis[:] = np.inf
+            break
+        nis[k] = nu[3 * k] * sol[0, 0] + nu[3 * k + 1] * sol[1, 0] + nu[3 * k + 2] * sol[2, 0]
+    return z_pred, S_zz, hph, Pxz, nu, nis
+
+
+@_njit
+def _solve_small(A: Array, B: Array) -> tuple[Array, bool]:
+    """A⁻¹ B (m, k) by Gaussian elimination with partial pivoting (numpy.linalg.solve's LU), and whether A
+    was non-singular (an exactly zero pivot: False)."""
+    m = A.shape[0]
+    k = B.shape[1]
+    U = A.copy()
+    X = B.copy()
+    for c in range(m):
+        piv = c
+        best = abs(U[c, c])
+        for r in range(c + 1, m):
+            if abs(U[r, c]) > best:
+                best, piv = abs(U[r, c]), r
+        if best == 0.0 or not np.isfinite(best):
+            return X, False
+        if piv != c:
+            for j in range(m):
+                U[c, j], U[piv, j] = U[piv, j], U[c, j]
+            for j in range(k):
+                X[c, j], X[piv, j] = X[piv, j], X[c, j]
+        inv = 1.0 / U[c, c]
+        for r in range(c + 1, m):
+            f = U[r, c] * inv
+            if f != 0.0:
+                for j in range(c, m):
+                    U[r, j] -= f * U[c, j]
+                for j in range(k):
+                    X[r, j] -= f * X[c, j]
+    for c in range(m - 1, -1, -1):
+        inv = 1.0 / U[c, c]
+        for j in range(k):
+            acc = X[c, j]
+            for i in range(c + 1, m):
+                acc -= U[c, i] * X[i, j]
+            X[c, j] = acc * inv
+    return X, True
+
+
+@_njit
+def gain_update_kernel(x_pred: Array, P_pred: Array, Pxz: Array, S_zz: Array, S_gain: Array, nu: Array,
+                       consider: NDArray[np.bool_]) -> tuple[Array, Array, bool]:
+    """The update with gain K = Pxz S_gain⁻¹ (n, m), its rows of the consider states zeroed (Schmidt):
+    x = x_pred + K ν, P = P_pred − K Pxzᵀ − Pxz Kᵀ + K S_zz Kᵀ (the Joseph-like form, the error covariance
+    for any gain), and whether S_gain was non-singular."""
+    n, m = Pxz.shape
+    Kt, ok = _solve_small(S_gain, Pxz.T.copy())  # S_gain Kᵀ = Pxzᵀ (S_gain symmetric)
+    if not ok:
+        return x_pred.copy(), P_pred.copy(), False
+    for i in range(n):
+        if consider[i]:
+            for j in range(m):
+                Kt[j, i] = 0.0
+    x = x_pred.copy()
+    for i in range(n):
+        acc = 0.0
+        for j in range(m):
+            acc += Kt[j, i] * nu[j]
+        x[i] += acc
+    # K S_zz (n, m)
+    KS = np.zeros((n, m))
+    for i in range(n):
+        for a in range(m):
+            kia = Kt[a, i]
+            if kia != 0.0:
+                for b in range(m):
+                    KS[i, b] += kia * S_zz[a, b]
+    P = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            acc = P_pred[i, j]
+            for a in range(m):
+                acc += -Kt[a, i] * Pxz[j, a] - Pxz[i, a] * Kt[a, j] + KS[i, a] * Kt[a, j]
+            P[i, j] = acc
+            P[j, i] = acc
+    return x, P, True

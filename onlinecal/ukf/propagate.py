@@ -26,6 +26,7 @@ mean is linear in R, so the mean attitude over the samples is formed first and u
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -73,7 +74,7 @@ def mag_weights(t_prev: float, t: Array, t_mag: Array) -> Array:
     return interp_weights(j, frac, L)
 
 
-def interp_weights(j: Array, frac: Array, L: int) -> Array:
+def interp_weights(j: NDArray[Any], frac: Array, L: int) -> Array:
     """c (L + 1,) from the interpolation indices j (M,) in 1..L and fractions frac (M,) of M mag samples:
     sample m sits between IMU ticks j−1 and j (tick 0: the sample before the block) at ``frac``."""
     c = np.bincount(j, weights=frac, minlength=L + 1) + np.bincount(j - 1, weights=1.0 - frac, minlength=L + 1)

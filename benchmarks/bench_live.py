@@ -7,6 +7,7 @@ The receiving process's CPU time (user + system, from /proc/PID/stat: MAVLink de
 filter, checkpoints off) is sampled when its link opens, when the stream starts and when it ends; the
 figure is its CPU time over the stream as a percentage of the stream's wall time, i.e. of one core. Start-up
 (imports, loading the compiled kernels from numba's cache) is printed on its own.
+The link alone (decoding without the filter) is measured in this process first.
 
 The machine may be shared with other jobs: CPU time of the receiving process is what is reported, which
 the load affects much less than the wall clock (it does a little through cache effects).
@@ -82,6 +83,28 @@ def measure(data, backend: str, seconds: float, workdir: Path) -> dict[str, floa
             "imu_samples": float(cal.get("meta", {}).get("online", {}).get("imu_samples", float("nan")))}
 
 
+def decode_only(data, seconds: float) -> float:  # type: ignore[no-untyped-def]
+    """CPU µs per message of the link alone: :class:`onlinecal.io.live.LiveSource` in this process, its
+    blocks consumed and dropped (no filter), the sender in another thread; the consuming thread's CPU time
+    (``time.thread_time``) — what decoding, reordering and block assembly cost without the filter."""
+    from onlinecal.io.live import LiveSource
+    from onlinecal.io.sender import send_session
+
+    port = _free_port()
+    src = LiveSource(f"udpin:127.0.0.1:{port}", rate_hz=0, duration_s=seconds - 0.5)
+    th = threading.Thread(target=lambda: send_session(data, f"udpout:127.0.0.1:{port}", rate_scale=1.0),
+                          daemon=True)
+    th.start()
+    c0 = time.thread_time()
+    n = 0
+    for b in src.blocks():
+        n += b.n_imu
+    cpu = time.thread_time() - c0
+    src.close()
+    th.join(30)
+    return 1e6 * cpu / max(n, 1)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=60.0, help="length of the stream (real time)")
@@ -95,6 +118,9 @@ def main() -> None:
     print(f"stream: {data.n_imu} RAW_IMU messages at {args.rate:g} Hz over UDP 127.0.0.1, {args.seconds:g} s in "
           f"real time (simulated flight, cold start); load average {os.getloadavg()[0]:.1f} on "
           f"{os.cpu_count()} cores")
+    us = decode_only(data, args.seconds)
+    print(f"the link alone (LiveSource: receive, decode, reorder, blocks; no filter): {us:.1f} µs CPU per "
+          f"message = {us * args.rate / 1e4:.1f} % of one core at {args.rate:g} Hz")
     with tempfile.TemporaryDirectory() as td:
         for be in args.backends.split(","):
             r = measure(data, be, args.seconds, Path(td))

@@ -145,7 +145,7 @@ def test_unscented_innovation_and_gain_kernels_equal_numpy():
     Z = rng.normal(size=(S, m))
     z = rng.normal(size=m)
     r = rng.random(m) + 0.1
-    z_pred, S_zz, hph, Pxz, nu, nis = kernels.innovation_kernel(Y, Z, z, Wm, Wc, r)
+    z_pred, S_zz, hph, Pxz, nu, nis = kernels.innovation_kernel(Y, Z, z, Wm, Wc, r, np.ones(2, bool))
     zr = Wm @ Z
     Zc = Z - zr
     Sr = Zc.T @ (Zc * Wc[:, None])

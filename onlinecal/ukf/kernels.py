@@ -432,12 +432,13 @@ def unscented_kernel(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, A
 
 
 @_njit
-def innovation_kernel(Y: Array, Z: Array, z: Array, Wm: Array, Wc: Array,
-                      r_diag: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
+def innovation_kernel(Y: Array, Z: Array, z: Array, Wm: Array, Wc: Array, r_diag: Array,
+                      gated: NDArray[np.bool_]) -> tuple[Array, Array, Array, Array, Array, Array]:
     """Statistics of the stacked measurement for the UKF update: z_pred = Σ Wm_s Z_s (m,),
     S_zz = Σ Wc_s Zc_sᵀ Zc_s + diag(r) (m, m), hph = diag of its first term (m,), Pxz = Σ Wc_s Y_sᵀ Zc_s
-    (n, m), ν = z − z_pred (m,), and the NIS νᵀ S⁻¹ ν of every consecutive 3-block (m/3,) (all +inf if
-    any block is singular). Y (S, n) sigma deviations from the predicted mean, Z (S, m) predicted readings."""
+    (n, m), ν = z − z_pred (m,), and the NIS νᵀ S⁻¹ ν of every consecutive 3-block k with gated[k] (m/3,)
+    (+inf for the others, and for all if a gated block of S is singular). Y (S, n) sigma deviations from
+    the predicted mean, Z (S, m) predicted readings."""
     S, m = Z.shape
     n = Y.shape[1]
     z_pred = np.zeros(m)
@@ -467,9 +468,11 @@ def innovation_kernel(Y: Array, Z: Array, z: Array, Wm: Array, Wc: Array,
             S_zz[j, i] = S_zz[i, j]
     nu = z - z_pred
     nb = m // 3
-    nis = np.empty(nb)
+    nis = np.full(nb, np.inf)
     B = np.empty((3, 3))
     for k in range(nb):
+        if not gated[k]:
+            continue
         for i in range(3):
             for j in range(3):
                 B[i, j] = S_zz[3 * k + i, 3 * k + j]
@@ -557,3 +560,97 @@ def gain_update_kernel(x_pred: Array, P_pred: Array, Pxz: Array, S_zz: Array, S_
             P[i, j] = acc
             P[j, i] = acc
     return x, P, True
+
+
+@_njit
+def update_kernel(Y: Array, x_pred: Array, P_pred: Array, z: Array, Z: Array, r_diag: Array, Wm: Array,
+                  Wc: Array, gated: NDArray[np.bool_], droppable: NDArray[np.bool_], gates: Array,
+                  consider: NDArray[np.bool_], damp: float,
+                  want_post: bool) -> tuple[Array, Array, Array, NDArray[np.int64], Array, Array, bool]:
+    """The whole joint UKF update of one block on stacked 3-vector measurements (reference:
+    :func:`onlinecal.ukf.unscented.update`), in one call.
+
+    Y (S, n), x_pred (n,), P_pred (n, n): the predicted sigma deviations, mean, covariance; z (m,) the
+    readings, Z (S, m) their prediction per sigma point, r_diag (m,) the diagonal of R (m = 3 × blocks).
+    Per 3-block k: gated[k] whether it is chi-square gated, droppable[k] whether a NIS above gates[k] drops
+    it (an accel in motion) instead of inflating its R to the gate's size (soft gate). consider (n,) the
+    Schmidt states (zero gain); damp the partial-update share (gain as if R ≥ damp·HPHᵀ; gating and P use
+    the model's S). want_post: per gated block the measurement the posterior predicts, z_pred + A S⁻¹ ν,
+    and its covariance A − A S⁻¹ A with A = S − R.
+
+    Returns x (n,), P (n, n), NIS (blocks,) (+inf where not gated), status (blocks,) (−1 not gated, 0 ok,
+    1 soft-gated, 2 dropped), post_z (blocks, 3), post_P (blocks, 3, 3), and False if a matrix to be
+    solved was singular (x, P then the prediction).
+    """
+    n = x_pred.shape[0]
+    m = z.shape[0]
+    nb = m // 3
+    z_pred, S_zz, hph, Pxz, nu, nis = innovation_kernel(Y, Z, z, Wm, Wc, r_diag, gated)
+    status = np.full(nb, -1, np.int64)
+    post_z = np.zeros((nb, 3))
+    post_P = np.zeros((nb, 3, 3))
+    keep = np.ones(m, np.bool_)
+    n_keep = m
+    Sk = np.empty((3, 3))
+    A = np.empty((3, 3))
+    for k in range(nb):
+        if not gated[k]:
+            continue
+        o = 3 * k
+        if droppable[k] and nis[k] > gates[k]:
+            status[k] = 2
+            keep[o : o + 3] = False
+            n_keep -= 3
+            continue
+        status[k] = 0
+        if nis[k] > gates[k]:
+            status[k] = 1
+            for i in range(3):
+                S_zz[o + i, o + i] += r_diag[o + i] * (nis[k] / gates[k] - 1.0)
+        if want_post:
+            for i in range(3):
+                for j in range(3):
+                    Sk[i, j] = S_zz[o + i, o + j]
+                    A[i, j] = Sk[i, j] - (r_diag[o + i] if i == j else 0.0)
+            AS_t, ok = _solve_small(Sk, A)  # S⁻¹ A = (A S⁻¹)ᵀ (S, A symmetric)
+            if not ok:
+                return x_pred.copy(), P_pred.copy(), nis, status, post_z, post_P, False
+            for i in range(3):
+                acc = z_pred[o + i]
+                for j in range(3):
+                    acc += AS_t[j, i] * nu[o + j]
+                post_z[k, i] = acc
+                for j in range(3):
+                    acc = A[i, j]
+                    for q in range(3):
+                        acc -= AS_t[q, i] * A[q, j]
+                    post_P[k, i, j] = acc
+    if n_keep == 0:
+        return x_pred.copy(), P_pred.copy(), nis, status, post_z, post_P, True
+    idx = np.empty(n_keep, np.int64)
+    c = 0
+    for i in range(m):
+        if keep[i]:
+            idx[c] = i
+            c += 1
+    Sz = np.empty((n_keep, n_keep))
+    Sg = np.empty((n_keep, n_keep))
+    for a in range(n_keep):
+        for b in range(n_keep):
+            Sz[a, b] = S_zz[idx[a], idx[b]]
+            Sg[a, b] = Sz[a, b]
+        if damp > 0.0:
+            h = hph[idx[a]]
+            d = Sz[a, a] - h
+            extra = damp * h - d
+            if extra > 0.0:
+                Sg[a, a] += extra
+    Pk = np.empty((n, n_keep))
+    for i in range(n):
+        for a in range(n_keep):
+            Pk[i, a] = Pxz[i, idx[a]]
+    nuk = np.empty(n_keep)
+    for a in range(n_keep):
+        nuk[a] = nu[idx[a]]
+    x, P, ok = gain_update_kernel(x_pred, P_pred, Pk, Sz, Sg, nuk, consider)
+    return x, P, nis, status, post_z, post_P, ok

@@ -36,8 +36,10 @@ from .layout import (
     ATT,
     DIP,
     SENSOR_SLICE,
+    model_pair,
     prefix_products_cm,
     rodrigues_cm,
+    rot_log,
     sensor_model,
 )
 
@@ -173,3 +175,24 @@ def predict_raw(X: Array, sensor: str, v_body: Array) -> Array:
     """
     o, Minv = sensor_model(X[:, SENSOR_SLICE[sensor]])
     return np.einsum("sij,sj->si", Minv, v_body) + o
+
+
+def sensor_models(p: Array) -> tuple[Array, Array, Array]:
+    """(o (N, 3), M (N, 3, 3), M⁻¹ (N, 3, 3)) of eq. 1 with eqs. 2–6 for N parameter rows p (N, 12), on
+    the kernel backend (:func:`onlinecal.ukf.kernels.model_pair_kernel`, or the numpy reference
+    :func:`onlinecal.ukf.layout.model_pair`)."""
+    if kernels.backend() == "numpy":
+        return model_pair(p)
+    out: tuple[Array, Array, Array] = kernels.model_pair_kernel(np.ascontiguousarray(p, dtype=np.float64))
+    return out
+
+
+def attitude_errors(R_end: Array) -> Array:
+    """Rotation vectors (S_d, 3) of R_end[0]ᵀ R_end[s] for R_end (S_d, 3, 3): each propagated sigma
+    point's attitude relative to the mean's (row 0), on the kernel backend (numpy reference:
+    :func:`onlinecal.ukf.layout.rot_log`)."""
+    if kernels.backend() == "numpy":
+        out: Array = rot_log(R_end[0].T @ R_end)
+        return out
+    out = kernels.rot_log_rel_kernel(np.ascontiguousarray(R_end, dtype=np.float64))
+    return out

@@ -140,11 +140,11 @@ def main() -> None:
           f"{full_cpu / cpu_np:.0f}×")
     L = max(1, round(0.1 * args.rate))
     nst = cal.n
-    fl = block_flops(nst, len(cal._dyn_pts), L, 6)
+    fl = block_flops(nst, len(cal.lay.dyn_pts), L, 6)
     tot = sum(fl.values())
     rate = core_rate()
     lim_block = tot / rate
-    print(f"flop count per 0.1-s block (n = {nst} states, {2 * nst + 1} sigma points, {len(cal._dyn_pts)} "
+    print(f"flop count per 0.1-s block (n = {nst} states, {2 * nst + 1} sigma points, {len(cal.lay.dyn_pts)} "
           f"dynamic, {L} samples, 6 measurement components): {tot / 1e3:.0f} kflop ("
           + ", ".join(f"{k} {v / 1e3:.0f}k" for k, v in fl.items()) + ")")
     print(f"this core on a dense {nst}×{2 * nst + 1} product: {rate / 1e9:.1f} Gflop/s → limit "

@@ -209,3 +209,82 @@ def test_numba_cache_dir_falls_back_when_package_dir_is_unwritable(tmp_path):
     assert list(cache.rglob("*.nbi")), "nothing cached"
     assert "data saved" in outs[0] and "data loaded" in outs[1], outs[1][-1000:]
     assert (pkg / "ukf" / "__pycache__").is_file()
+
+
+def _meas_case(rng: np.random.Generator, S: int, names: list[str], scale: float):
+    from onlinecal.ukf.unscented import Measurement
+
+    out = []
+    for s in names:
+        Z = rng.normal(size=(S, 3)) * 0.1 + rng.normal(size=3)
+        z = Z.mean(axis=0) + rng.normal(size=3) * scale  # scale: how far the reading is (NIS size)
+        out.append(Measurement(s, z, Z, rng.random(3) * 0.01 + 0.001))
+    return out
+
+
+@pytest.mark.parametrize("case", ["accel+mag", "accel-dropped", "mag-soft", "rest-static", "all-dropped", "damped"])
+def test_update_equals_unscented_update(case):
+    """kernels_unscented.update against onlinecal.ukf.unscented.update (the numpy reference): posterior,
+    NIS with its status (ok / soft / drop) and the posterior measurement prediction, on every gating path."""
+    from onlinecal.ukf import kernels_unscented as ku
+    from onlinecal.ukf import unscented as un
+
+    rng = np.random.default_rng(abs(hash(case)) % 2**32)
+    n = 40
+    S = 2 * n + 1
+    Wm, Wc = un.merwe_weights(n, 0.3, 2.0, 0.0)
+    X = rng.normal(size=(S, n)) * 0.05
+    x_pred, Y, P_pred = un.predict_moments(X, Wm, Wc, rng.random(n) * 1e-6)
+    names = {"accel+mag": ["accel", "mag"], "accel-dropped": ["accel", "mag"], "mag-soft": ["accel", "mag"],
+             "rest-static": ["accel", "mag", "rest"], "all-dropped": ["accel"], "damped": ["accel", "mag"]}[case]
+    meas = _meas_case(rng, S, names, 0.05)
+    if case in ("accel-dropped", "all-dropped"):
+        meas[0].z = meas[0].z + 5.0
+    if case == "mag-soft":
+        meas[1].z = meas[1].z + 5.0
+    gates = {"accel": 16.27, "mag": 21.1}
+    gating = un.Gating(gates, static=case == "rest-static")
+    consider = np.zeros(n, bool)
+    consider[[6, 7, 8]] = True
+    damp = 4.0 if case == "damped" else 0.0
+    want_post = case in ("rest-static", "mag-soft")
+    ref = un.update(Y, x_pred, P_pred, meas, Wm, Wc, gating, consider, damp, want_post)
+    with kernels.use_backend("numba"):
+        got = ku.update(Y, x_pred, P_pred, meas, Wm, Wc, gating, consider, damp, want_post)
+    _close(got.x, ref.x)
+    _close(got.P, ref.P)
+    assert [(s, st) for s, _, st in got.nis] == [(s, st) for s, _, st in ref.nis]
+    _close(np.array([v for _, v, _ in got.nis]), np.array([v for _, v, _ in ref.nis]))
+    expected_status = {"accel-dropped": "drop", "all-dropped": "drop", "mag-soft": "soft"}.get(case)
+    if expected_status:
+        assert expected_status in [st for _, _, st in got.nis]
+    assert set(got.post) == set(ref.post)
+    for k in ref.post:
+        _close(got.post[k][0], ref.post[k][0])
+        _close(got.post[k][1], ref.post[k][1])
+    if case == "all-dropped":
+        assert np.array_equal(got.x, x_pred) and np.array_equal(got.P, P_pred)
+
+
+def test_sigma_points_and_moments_equal_unscented():
+    from onlinecal.ukf import kernels_unscented as ku
+    from onlinecal.ukf import unscented as un
+
+    rng = np.random.default_rng(8)
+    n = 40
+    P, x = _spd(rng, n), rng.normal(size=n)
+    perm = rng.permutation(n).astype(np.intp)
+    for pid in (True, False):
+        ref = un.sigma_points(x, P, 0.3, 0.0, perm, pid)
+        with kernels.use_backend("numba"):
+            got = ku.sigma_points(x, P, 0.3, 0.0, perm, pid)
+            with pytest.raises(np.linalg.LinAlgError):
+                ku.sigma_points(x, -P, 0.3, 0.0, perm, pid)
+        _close(got, ref)
+    Wm, Wc = un.merwe_weights(n, 0.3, 2.0, 0.0)
+    q = rng.random(n)
+    ref3 = un.predict_moments(ref, Wm, Wc, q)
+    with kernels.use_backend("numba"):
+        got3 = ku.predict_moments(ref, Wm, Wc, q)
+    for a, b in zip(got3, ref3, strict=True):
+        _close(a, b)

@@ -22,16 +22,21 @@ def _both(data, config=None):  # type: ignore[no-untyped-def]
     return out["numba"], out["numpy"]
 
 
-def _assert_same(a, b, rtol: float = 1e-9) -> None:  # type: ignore[no-untyped-def]
-    """Every estimate within rtol × max(|value|, σ) and every σ within rtol × σ (a value of exactly 0
-    with σ > 0, e.g. a gauge term held at its prior, is compared on the scale of its σ)."""
+def _assert_same(a, b, rtol: float = 1e-9, rtol_sigma: float = 1e-8) -> None:  # type: ignore[no-untyped-def]
+    """Every estimate within rtol × max(|value|, σ) (a value of exactly 0 with σ > 0, e.g. a gauge term
+    held at its prior, is compared on the scale of its σ) and every σ within rtol_sigma × σ.
+
+    Why σ gets 1e-8: a posterior variance is the prior's less what the data explained, P − K S Kᵀ, and
+    for a well-observed term (gyro bias: prior σ 0.2 rad/s, posterior 3e-5) the difference is ~1e-8 of
+    the terms it is taken from, so the rounding of either path (1e-16 of the terms) is ~1e-9–1e-8 of
+    the result — as much as any other valid order of the same sums would give the numpy path itself."""
     for s in SENSORS:
         ca, cb = a.calibration.sensor(s), b.calibration.sensor(s)
         for p in PARAMS:
             va, vb = np.asarray(ca.params()[p], float), np.asarray(cb.params()[p], float)
             sa, sb = np.asarray(ca.sigma[p], float), np.asarray(cb.sigma[p], float)
             assert np.all(np.abs(va - vb) <= rtol * np.maximum(np.abs(vb), sb)), (s, p, va - vb, sb)
-            assert np.all(np.abs(sa - sb) <= rtol * sb), (s, p, sa - sb, sb)
+            assert np.all(np.abs(sa - sb) <= rtol_sigma * sb), (s, p, sa - sb, sb)
     for k in a.calibration.extensions:
         ea, eb = a.calibration.extensions[k], b.calibration.extensions[k]
         sg = np.asarray(b.calibration.meta["online"]["extensions_sigma"][next(

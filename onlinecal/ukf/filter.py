@@ -53,16 +53,17 @@ from .blocks import (
     value_lattice,
 )
 from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
-from .geometry import rodrigues1, rodrigues_n, rot_log
+from .geometry import rodrigues1, rodrigues_n
 from .health import EventLog, NisMonitor
-from .layout import ATT, AXES, DIP, N_STATE, SENSOR_SLICE, correction, field_world, index, model_pair
+from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
+from .layout import ATT, AXES, DIP, N_STATE, SENSOR_SLICE, correction, field_world, index
 from .measurements import AccelModel, MagModel, Offsets, ZeroRateModel, field_body, gravity_body, gyro_offsets
 from .noise import NoiseModel, bilinear_var, hold_sigma, lattice_plan, mag_unit_of
 from .outputs import calibration_of, extensions_of, extensions_sigma, missing_motion, observability, trace_row
-from .propagate import BlockPrediction, interp_weights, propagate_block
+from .propagate import BlockPrediction, attitude_errors, interp_weights, propagate_block, sensor_models
 from .rest import RestAccumulator
 from .state import StateLayout, choose_gauge, prior
-from .unscented import Gating, Measurement, UpdateResult, merwe_weights, predict_moments, sigma_points, update
+from .unscented import Gating, Measurement, UpdateResult, merwe_weights
 
 Array = NDArray[np.float64]
 STATE_SCHEMA = checkpoint.STATE_SCHEMA
@@ -511,7 +512,7 @@ class OnlineCalibrator:
             k0, n_m = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
             c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], j - i)
         Sd = dyn.shape[0]
-        o_all, M_all, Minv_all = model_pair(np.concatenate(
+        o_all, M_all, Minv_all = sensor_models(np.concatenate(
             [X[dyn, SENSOR_SLICE["gyro"]], X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
         off = self._offsets("gyro", self._rest_det.still)
         extra = gyro_offsets(X[dyn], off, self._temp_reg(T) if off.temp is not None else None,
@@ -519,7 +520,7 @@ class OnlineCalibrator:
         pred = propagate_block(X, self.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, dyn,
                                (o_all[:Sd], M_all[:Sd]), extra)
         # sigma point 0 is the mean; the points outside dyn share its attitude history (error stays 0)
-        X[dyn, ATT] = rot_log(pred.R_end[0].T @ pred.R_end)
+        X[dyn, ATT] = attitude_errors(pred.R_end)
         return pred, (o_all[Sd:], M_all[Sd:], Minv_all[Sd:])
 
     def _block_q(self, B: Blocks, b: int, t: Array, n: dict[str, float]) -> Array:
@@ -615,7 +616,7 @@ class OnlineCalibrator:
         the gyro's zero rate (:mod:`.measurements`, the same models as in motion)."""
         S = X.shape[0]
         R_s = self.R_nom @ rodrigues_n(X[:, ATT])  # (S, 3, 3) attitude of every sigma point
-        o, M, Minv = model_pair(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
+        o, M, Minv = sensor_models(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
         T_reg = acc.T_reg
         meas, f_cal = [], None
         if acc.na:

@@ -89,7 +89,7 @@ def propagate_block(
     w: Array,
     dt: Array,
     c_mag: Array | None,
-    dyn: Array,
+    dyn: NDArray[Any],
     gyro: tuple[Array, Array],
     b_extra: Array | None = None,
 ) -> BlockPrediction:
@@ -109,7 +109,7 @@ def propagate_block_numpy(
     w: Array,
     dt: Array,
     c_mag: Array | None,
-    dyn: Array,
+    dyn: NDArray[Any],
     gyro: tuple[Array, Array],
     b_extra: Array | None = None,
 ) -> BlockPrediction:

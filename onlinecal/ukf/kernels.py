@@ -406,7 +406,8 @@ def sigma_points_kernel(x: Array, P: Array, scale: float, perm: NDArray[np.intp]
 @_njit
 def unscented_kernel(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, Array, Array]:
     """Predicted mean x_pred = Σ Wm_s X_s (n,), deviations Y = X − x_pred (S, n) and covariance
-    P_pred = Σ Wc_s Y_sᵀ Y_s + diag(q) (n, n) (the unscented transform; q the process noise variances)."""
+    P_pred = Σ Wc_s Y_sᵀ Y_s + diag(q) (n, n) (the unscented transform; q the process noise variances).
+    The covariance is one BLAS product (YᵀW)Y, as in the reference."""
     S, n = X.shape
     x_pred = np.zeros(n)
     for s in range(S):
@@ -414,20 +415,15 @@ def unscented_kernel(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, A
         for j in range(n):
             x_pred[j] += w * X[s, j]
     Y = np.empty((S, n))
+    YW = np.empty((n, S))
     for s in range(S):
         for j in range(n):
-            Y[s, j] = X[s, j] - x_pred[j]
-    P = np.zeros((n, n))
-    for s in range(S):
-        w = Wc[s]
-        for i in range(n):
-            wi = w * Y[s, i]
-            for j in range(i, n):
-                P[i, j] += wi * Y[s, j]
+            y = X[s, j] - x_pred[j]
+            Y[s, j] = y
+            YW[j, s] = y * Wc[s]
+    P = np.dot(YW, Y)
     for i in range(n):
         P[i, i] += q[i]
-        for j in range(i + 1, n):
-            P[j, i] = P[i, j]
     return x_pred, Y, P
 
 

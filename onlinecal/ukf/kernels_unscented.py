@@ -18,6 +18,14 @@ from .unscented import Gating, Measurement, UpdateResult
 
 Array = NDArray[np.float64]
 _STATUS = {0: "ok", 1: "soft", 2: "drop"}
+_IDENTITY: dict[int, NDArray[np.intp]] = {}
+
+
+def _identity(n: int) -> NDArray[np.intp]:
+    """0..n−1 as an index array (kept: the state order of the Cholesky factor when no permutation)."""
+    if n not in _IDENTITY:
+        _IDENTITY[n] = np.arange(n, dtype=np.intp)
+    return _IDENTITY[n]
 
 
 def sigma_points(x: Array, P: Array, alpha: float, kappa: float, perm: NDArray[np.intp],
@@ -28,9 +36,8 @@ def sigma_points(x: Array, P: Array, alpha: float, kappa: float, perm: NDArray[n
         return unscented.sigma_points(x, P, alpha, kappa, perm, perm_id)
     n = x.shape[0]
     lam = alpha**2 * (n + kappa) - n
-    order = np.arange(n, dtype=np.intp) if perm_id else np.asarray(perm, dtype=np.intp)
-    X, ok = kernels.sigma_points_kernel(np.ascontiguousarray(x, dtype=np.float64),
-                                        np.ascontiguousarray(P, dtype=np.float64), lam + n, order)
+    order = _identity(n) if perm_id else np.asarray(perm, dtype=np.intp)
+    X, ok = kernels.sigma_points_kernel(x, P, lam + n, order)
     if not ok:
         raise np.linalg.LinAlgError("Matrix is not positive definite")
     out: Array = X
@@ -53,14 +60,18 @@ def update(Y: Array, x_pred: Array, P_pred: Array, meas: list[Measurement], Wm: 
     if kernels.backend() == "numpy":
         return unscented.update(Y, x_pred, P_pred, meas, Wm, Wc, gating, consider, damp, want_post)
     names = [m.name for m in meas]
-    gated = np.array([s != "rest" for s in names], dtype=np.bool_)
-    droppable = np.array([s == "accel" and not gating.static for s in names], dtype=np.bool_)
-    gates = np.array([gating.gates[s] if g else np.inf for s, g in zip(names, gated, strict=True)])
+    k = len(meas)
+    gated = np.empty(k, np.bool_)
+    droppable = np.empty(k, np.bool_)
+    gates = np.empty(k)
+    for i, s in enumerate(names):
+        gated[i] = s != "rest"
+        droppable[i] = s == "accel" and not gating.static
+        gates[i] = gating.gates[s] if gated[i] else np.inf
     x, P, nis, status, post_z, post_P, ok = kernels.update_kernel(
-        np.ascontiguousarray(Y, dtype=np.float64), x_pred, P_pred, np.concatenate([m.z for m in meas]),
-        np.ascontiguousarray(np.hstack([m.Z for m in meas]), dtype=np.float64),
-        np.concatenate([m.r for m in meas]).astype(np.float64), Wm, Wc, gated, droppable, gates,
-        np.asarray(consider, dtype=np.bool_), float(damp), bool(want_post))
+        Y, x_pred, P_pred, np.concatenate([m.z for m in meas]), np.hstack([m.Z for m in meas]),
+        np.concatenate([m.r for m in meas]), Wm, Wc, gated, droppable, gates, consider, float(damp),
+        bool(want_post))
     if not ok:
         raise np.linalg.LinAlgError("Singular matrix")
     res = UpdateResult(x, P)

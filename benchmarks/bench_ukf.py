@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from pathlib import Path
 
 for _v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
@@ -96,6 +97,8 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=200.0)
     ap.add_argument("--stock-samples", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--profile", type=float, default=0.0, metavar="MIN",
+                    help="also profile the compiled path on the first MIN minutes: where the time goes")
     args = ap.parse_args()
     sim = simulate("flight", args.seed, duration=60 * args.minutes, imu_rate=args.rate)
     d = sim.data
@@ -153,6 +156,31 @@ def main() -> None:
     blocks = runs[next(iter(runs))][0].calibration.meta["online"]["blocks"]
     print(f"ratio to the limit (CPU per block / limit): compiled {cpu_new / blocks / lim_block:.1f}×, "
           f"numpy reference {cpu_np / blocks / lim_block:.1f}×")
+    if args.profile > 0 and kernels.HAVE_NUMBA:
+        where_time_goes(d.slice_imu(0, min(N, int(60 * args.profile * args.rate))))
+
+
+def where_time_goes(d, top: int = 12) -> None:  # type: ignore[no-untyped-def]
+    """cProfile of a replay on the compiled path: the share of the time inside the compiled kernels, and
+    the Python functions with the most time of their own (``tottime``) — what is left to compile."""
+    import cProfile
+    import pstats
+
+    pr = cProfile.Profile()
+    with kernels.use_backend("numba"):
+        replay([d.slice_imu(0, 4000)], None)  # kernels loaded before the profile
+        pr.enable()
+        replay([d], None)
+        pr.disable()
+    st = pstats.Stats(pr)
+    rows = [(k, v[2]) for k, v in st.stats.items()]  # type: ignore[attr-defined]
+    total = sum(t for _, t in rows)
+    kern = sum(t for k, t in rows if k[0].endswith("kernels.py") and k[2].endswith("_kernel"))
+    print(f"profile of {d.duration:.0f} s (cProfile adds its own cost per Python call): {100 * kern / total:.0f} % of "
+          f"the time inside the compiled kernels, {100 * (1 - kern / total):.0f} % in Python around them; "
+          "the Python functions with the most time of their own:")
+    for (f, line, name), t in sorted(rows, key=lambda r: -r[1])[:top]:
+        print(f"  {100 * t / total:5.1f} %  {Path(f).name}:{line} {name}")
 
 
 if __name__ == "__main__":

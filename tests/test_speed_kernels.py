@@ -288,3 +288,13 @@ def test_sigma_points_and_moments_equal_unscented():
         got3 = ku.predict_moments(ref, Wm, Wc, q)
     for a, b in zip(got3, ref3, strict=True):
         _close(a, b)
+
+
+def test_unknown_backend_in_the_environment_warns_and_runs_on_the_default(tmp_path):
+    env = {**os.environ, "ONLINECAL_KERNELS": "fortran",
+           "PYTHONPATH": str(Path(kernels.__file__).resolve().parents[2])}
+    out = subprocess.run([sys.executable, "-c", "from onlinecal.ukf import kernels as k; print(k.backend())"],
+                         env=env, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "numba"
+    assert "ONLINECAL_KERNELS='fortran'" in out.stderr and "Traceback" not in out.stderr

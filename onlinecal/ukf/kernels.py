@@ -8,7 +8,8 @@ dozens of small array operations). Results agree with the reference to rounding 
 reference's log₂-depth scan), so they are not bit-identical.
 
 Backend: ``ONLINECAL_KERNELS=numba|numpy`` in the environment when this module is first imported, or
-:func:`set_backend` at run time; ``numba`` is the default where numba imports, else ``numpy``.
+:func:`set_backend` at run time; ``numba`` is the default where numba imports, else ``numpy`` (another
+value: a RuntimeWarning, and the default).
 
 Compilation is cached on disk (``cache=True``). Numba writes its cache next to this file when the package
 directory is writable and otherwise in a per-user directory; where neither is writable (a read-only
@@ -23,6 +24,7 @@ import contextlib
 import math
 import os
 import tempfile
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -91,9 +93,13 @@ def _njit(fn: Callable[..., Any]) -> Callable[..., Any]:
     return numba.njit(cache=True)(fn)
 
 
-_backend = os.environ.get("ONLINECAL_KERNELS", "numba" if HAVE_NUMBA else "numpy").strip().lower()
+_default = "numba" if HAVE_NUMBA else "numpy"
+_backend = os.environ.get("ONLINECAL_KERNELS", _default).strip().lower()
 if _backend not in BACKENDS:
-    raise ValueError(f"ONLINECAL_KERNELS={_backend!r}: expected one of {', '.join(BACKENDS)}")
+    # an environment variable is not worth a crash: say so in one line and run on the default
+    warnings.warn(f"ONLINECAL_KERNELS={_backend!r} is not one of {', '.join(BACKENDS)}: using {_default}",
+                  RuntimeWarning, stacklevel=1)
+    _backend = _default
 if _backend == "numba" and not HAVE_NUMBA:
     _backend = "numpy"
 

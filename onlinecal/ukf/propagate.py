@@ -21,6 +21,11 @@ model inverted (raw = M⁻¹ c + o, eq. 1) applied to gravity and the field in t
 
 averaged over the samples of the block (the block mean is what the filter compares with the data). The
 mean is linear in R, so the mean attitude over the samples is formed first and used once.
+
+:func:`propagate_block`, :func:`sensor_models` and :func:`attitude_errors` run on the backend of
+:mod:`onlinecal.ukf.kernels` (``ONLINECAL_KERNELS``): the compiled loop kernels there by default, or the
+numpy functions (:func:`propagate_block_numpy`, :func:`onlinecal.ukf.layout.model_pair`,
+:func:`onlinecal.ukf.layout.rot_log`), which are the reference the kernels are tested against.
 """
 
 from __future__ import annotations

@@ -41,7 +41,7 @@ from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
 from .geometry import rodrigues1
 from .health import EventLog, NisMonitor
 from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
-from .layout import ATT, AXES, DIP, N_STATE, SENSOR_SLICE, correction, field_world, index
+from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, field_world, index
 from .measurements import (
     AccelModel,
     MagModel,
@@ -52,12 +52,13 @@ from .measurements import (
     motion_measurements,
     rest_measurements,
 )
-from .noise import NoiseModel, bilinear_var, lattice_plan, mag_unit_of
+from .noise import NoiseModel, lattice_plan, mag_unit_of
 from .noise import hold_sigma as hold_sigma  # re-exported
 from .outputs import calibration_of, extensions_of, extensions_sigma, missing_motion, observability, trace_row
-from .propagate import BlockPrediction, attitude_errors, interp_weights, propagate_block, sensor_models
+from .predict import block_process_noise, propagate_sigma_points
+from .propagate import sensor_models
 from .rest import RestAccumulator
-from .state import StateLayout, choose_gauge, prior, reset_states
+from .state import StateLayout, choose_gauge, grow, initial_state, prior, reset_states
 from .unscented import Gating, Measurement, UpdateResult, merwe_weights
 
 Array = NDArray[np.float64]
@@ -138,17 +139,7 @@ class OnlineCalibrator:
         c = self.config
         self._set_layout()
         self._hold_sigma: dict[str, float] = {}
-        x0, sig0 = self._prior()
-        n = self.n
-        self.x = np.zeros(n)
-        sig = np.zeros(n)
-        self.x[:N_STATE], sig[:N_STATE] = x0, sig0
-        for e, sl in self.lay.ext_slice.items():
-            sig[sl] = EXTENSIONS[e][1]
-        self.prior_sigma = sig.copy()
-        self.prior_x = self.x.copy()
-        sig[ATT] = 0.1
-        self.P = np.diag(sig**2)
+        self.x, self.P, self.prior_x, self.prior_sigma = initial_state(self.lay, *self._prior())
         self.R_nom = np.eye(3)
         self.mag_enabled = self.init is not None and self.init.mag is not None
         self.dip_known = False
@@ -168,16 +159,9 @@ class OnlineCalibrator:
     def _add_hold(self, sensor: str, sigma: float) -> None:
         """Append the 3 hold-offset states of ``sensor`` (0 ± sigma), or reset them if present."""
         if sensor not in self.lay.hold_slice:
-            n0 = self.n
             self._set_layout(self.lay.holds + (sensor,))
-            n1 = self.n
-            x = np.zeros(n1)
-            x[:n0] = self.x
-            P = np.zeros((n1, n1))
-            P[:n0, :n0] = self.P
-            self.x, self.P = x, P
-            self.prior_x = np.concatenate([self.prior_x, np.zeros(n1 - n0)])
-            self.prior_sigma = np.concatenate([self.prior_sigma, np.zeros(n1 - n0)])
+            self.x, self.P, self.prior_x, self.prior_sigma = grow(self.x, self.P, self.prior_x, self.prior_sigma,
+                                                                  self.n)
         self._hold_sigma[sensor] = sigma
         self._reset_hold(sensor)
 
@@ -445,44 +429,6 @@ class OnlineCalibrator:
     def _has_temp(self) -> bool:
         return any(e.startswith("temperature_bias") for e in self.lay.ext_slice)
 
-    def _propagate(self, B: Blocks, b: int, X: Array, a: Array, T: Array,
-                   use_mag: bool) -> tuple[BlockPrediction, tuple[Array, Array, Array]]:
-        """Every sigma point through the block's IMU samples (:func:`.propagate.propagate_block`); X's
-        attitude errors become those at the block's end, relative to the mean's. Returns the prediction
-        and the (o, M, M⁻¹) of accel then mag for every sigma point (one evaluation of eqs. 1–6 with the
-        gyro's for the dynamic points)."""
-        i, j = int(B.lo[b]), int(B.hi[b])
-        dyn = self.lay.dyn_pts
-        c_mag = None
-        if use_mag:
-            k0, n_m = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
-            c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], j - i)
-        Sd = dyn.shape[0]
-        o_all, M_all, Minv_all = sensor_models(np.concatenate(
-            [X[dyn, SENSOR_SLICE["gyro"]], X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
-        off = self._offsets("gyro", self._rest_det.still)
-        extra = gyro_offsets(X[dyn], off, self._temp_reg(T) if off.temp is not None else None,
-                             self._calibrated("accel", a) if off.gsens is not None else None, T.shape[0])
-        pred = propagate_block(X, self.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag,
-                               dyn,
-                               (o_all[:Sd], M_all[:Sd]), extra)
-        # sigma point 0 is the mean; the points outside dyn share its attitude history (error stays 0)
-        X[dyn, ATT] = attitude_errors(pred.R_end)
-        return pred, (o_all[Sd:], M_all[Sd:], Minv_all[Sd:])
-
-    def _block_q(self, B: Blocks, b: int, t: Array, n: dict[str, float]) -> Array:
-        """Process noise of the block: :meth:`_process_noise`, plus the trapezoid's error where the rate
-        is not smooth (Δt·|Δ²ω|/4 per sample, less the white noise's own E[Δ²n]² = 6σ², so that rest and
-        smooth motion add ~0), plus the bilinear allowance (:func:`.noise.bilinear_var`)."""
-        dt_blk = float(t[-1] - self._t_last)
-        q = self._process_noise(dt_blk, n["gyro"])
-        L = t.size
-        if L >= 2:
-            noise = float(B.jerk_n[b]) * 6.0 * (n["gyro"] * dt_blk / L / 4) ** 2
-            q[ATT] += max(0.0, float(B.jerk[b]) - noise) / 3.0
-        q[ATT] += bilinear_var(self.P) * dt_blk**2
-        return q
-
     def _motion_step(self, B: Blocks, b: int, t: Array, a: Array, T: Array, n: dict[str, float],
                      held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
         """Predict over the block, then one update with its mean accel (unless clipped) and mag."""
@@ -492,8 +438,13 @@ class OnlineCalibrator:
         except np.linalg.LinAlgError:
             self._diverged("covariance is not positive definite", tl)
             return
-        pred, sens = self._propagate(B, b, X, a, T, use_mag)
-        x_pred, Y, P_pred = predict_moments(X, self._Wm, self._Wc, self._block_q(B, b, t, n))
+        off = self._offsets("gyro", self._rest_det.still)
+        extra = gyro_offsets(X[self.lay.dyn_pts], off, self._temp_reg(T) if off.temp is not None else None,
+                             self._calibrated("accel", a) if off.gsens is not None else None, T.shape[0])
+        pred, sens = propagate_sigma_points(X, self.R_nom, B, b, self.lay.dyn_pts, use_mag, extra)
+        dt_blk = float(t[-1] - self._t_last)
+        q = block_process_noise(self._process_noise(dt_blk, n["gyro"]), B, b, dt_blk, n["gyro"], self.P)
+        x_pred, Y, P_pred = predict_moments(X, self._Wm, self._Wc, q)
         self.R_nom = pred.R_end[0]
         T_reg = float(np.mean(self._temp_reg(T))) if self._has_temp() else 0.0
         rate = float(np.linalg.norm(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr)))

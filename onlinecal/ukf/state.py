@@ -190,3 +190,28 @@ def reset_states(x: Array, P: Array, idx: slice | int | NDArray[np.intp], value:
         P[np.ix_(idx, idx)] = cov
     else:
         P[idx, idx] = cov
+
+
+def initial_state(lay: StateLayout, x0: Array, sig0: Array) -> tuple[Array, Array, Array, Array]:
+    """x (n,), P (n, n), prior mean and prior σ (n,) of a fresh start: the 40 base states from their prior
+    (x0, sig0 of :func:`prior`), the extensions at 0 ± their prior σ, the attitude error 0 ± 0.1 rad (not a
+    prior: restarted with the first block); hold offsets come later (:func:`grow`)."""
+    n = lay.n
+    x = np.zeros(n)
+    sig = np.zeros(n)
+    x[:N_STATE], sig[:N_STATE] = x0, sig0
+    for e, sl in lay.ext_slice.items():
+        sig[sl] = EXTENSIONS[e][1]
+    prior_sigma, prior_x = sig.copy(), x.copy()
+    sig[ATT] = 0.1
+    return x, np.diag(sig**2), prior_x, prior_sigma
+
+
+def grow(x: Array, P: Array, prior_x: Array, prior_sigma: Array, n1: int) -> tuple[Array, Array, Array, Array]:
+    """The same state with zero states appended up to n1 (new hold offsets; set by the caller)."""
+    n0 = x.shape[0]
+    x1 = np.zeros(n1)
+    x1[:n0] = x
+    P1 = np.zeros((n1, n1))
+    P1[:n0, :n0] = P
+    return x1, P1, np.concatenate([prior_x, np.zeros(n1 - n0)]), np.concatenate([prior_sigma, np.zeros(n1 - n0)])

@@ -303,3 +303,44 @@ def test_calibration_is_immutable_and_still_plain_json():
     assert len(cal.meta["online"]["events"]) == 1
     new = cal.replace(meta={**cal.meta, "extra": 1})
     assert new.meta["extra"] == 1 and "extra" not in cal.meta
+
+
+def test_ellipsoid_fit_recovers_hard_and_soft_iron_within_its_budget():
+    """eq. 17 on noisy samples of a known ellipsoid ‖M (x − o)‖ = 1 (M symmetric, as the fit has it): o and M
+    within a few of the fit's own σ, and a cloud that carries no ellipsoid costs a bounded time."""
+    import time
+
+    from onlinecal.ukf.attitude_init import ellipsoid_gn
+
+    A = np.array([[2.1, 0.05, -0.03], [0.05, 1.9, 0.02], [-0.03, 0.02, 2.0]])
+    o = np.array([0.1, -0.05, 0.2])
+    u = rng.normal(size=(1500, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    x = u @ np.linalg.inv(A).T + o + rng.normal(0, 0.002, (1500, 3))
+    o_e, M_e, cov, rms = ellipsoid_gn(x, x.mean(axis=0), np.eye(3) * 2.0)
+    sd = np.sqrt(np.diag(cov))
+    assert np.all(np.abs(o_e - o) < 5 * sd[:3]) and np.max(sd[:3]) < 1e-3
+    assert np.all(np.abs(M_e[np.triu_indices(3)] - A[np.triu_indices(3)]) < 5 * sd[3:])
+    assert rms == pytest.approx(0.002 * 2.0, rel=0.2)  # residual ≈ noise × |M|
+    flat = np.column_stack([rng.normal(size=(2000, 2)), 1e-3 * rng.normal(size=2000)])  # no ellipsoid in it
+    t0 = time.process_time()
+    ellipsoid_gn(flat, flat.mean(axis=0), np.eye(3))
+    assert time.process_time() - t0 < 1.0
+
+
+def test_align_gauge_turns_every_sensor_by_one_rotation():
+    """align_gauge gives the chosen sensor the asked alpha and leaves every relative orientation (M_s M_acc⁻¹)
+    and every bias as it was."""
+    from onlinecal.ukf.gauge import align_gauge
+
+    sens = {s: _cal(_params(1)[0]) for s in ("gyro", "accel", "mag")}
+    cal = Calibration(**sens)
+    target = np.array([0.01, -0.02, 0.005])
+    out = align_gauge(cal, "accel", target)
+    assert np.allclose(out.accel.alpha, target, atol=1e-10)
+    for s in ("gyro", "mag"):
+        rel0 = cal.sensor(s).matrix @ np.linalg.inv(cal.accel.matrix)
+        rel1 = out.sensor(s).matrix @ np.linalg.inv(out.accel.matrix)
+        assert np.allclose(rel0, rel1, atol=1e-12) and np.array_equal(out.sensor(s).bias, cal.sensor(s).bias)
+    Q = out.gyro.matrix @ np.linalg.inv(cal.gyro.matrix)
+    assert np.allclose(Q @ Q.T, np.eye(3), atol=1e-12) and np.linalg.det(Q) == pytest.approx(1.0)

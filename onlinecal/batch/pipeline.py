@@ -12,7 +12,7 @@ import numpy as np
 
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
-from ..sim.motion import G0
+from ..specs import G0
 from .ellipsoid import FitError
 from .gyro import fit_gyroscope
 from .segment import Segmentation, noise_floors, segment

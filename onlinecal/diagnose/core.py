@@ -28,7 +28,7 @@ from ..batch.ellipsoid import FitError
 from ..batch.segment import noise_floors, segment
 from ..io.base import ImuData
 from ..model import Calibration
-from ..sim.motion import G0
+from ..specs import G0
 from .analysis import Analysis, analyse, channel_mask
 from .detectors import Handedness, Saturated, find_axis_sign, find_saturation
 from .motion import prepare

@@ -34,6 +34,7 @@ from ..io.base import ImuData
 from ..model import SENSORS, Calibration
 from . import checkpoint
 from .attitude_init import MagCollector, dip_of, fit_mag_cold, initial_attitude, set_yaw_variance, yaw_to_north
+from .attitude_init import ellipsoid_gn as ellipsoid_gn  # re-exported (older imports)
 from .blocks import Blocks, HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer, block_stats, cut_blocks
 from .blocks import third_diff_var as third_diff_var  # re-exported
 from .blocks import value_lattice as value_lattice
@@ -634,5 +635,5 @@ class OnlineCalibrator:
 
 
 # kept importable from here (tests, benchmarks and diagnose import them from onlinecal.ukf.filter)
-__all__ = ["AXES", "EXTENSIONS", "OnlineCalibrator", "UKFConfig", "hold_sigma",
+__all__ = ["AXES", "EXTENSIONS", "OnlineCalibrator", "UKFConfig", "ellipsoid_gn", "hold_sigma",
            "third_diff_var", "value_lattice"]

@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from ..model import Calibration, SensorCalibration, decompose
-from .layout import rodrigues
 
 
 def align_gauge(cal: Calibration, sensor: str = "accel", alpha: ArrayLike = (0.0, 0.0, 0.0)) -> Calibration:
@@ -31,10 +31,10 @@ def align_gauge(cal: Calibration, sensor: str = "accel", alpha: ArrayLike = (0.0
     M_ref = ref.matrix
 
     def resid(q: np.ndarray) -> np.ndarray:
-        return decompose(rodrigues(q[None])[0] @ M_ref)[1] - target
+        return decompose(Rotation.from_rotvec(q).as_matrix() @ M_ref)[1] - target
 
     q = least_squares(resid, -(decompose(M_ref)[1] - target), xtol=1e-14, ftol=1e-14).x
-    Q = rodrigues(q[None])[0]
+    Q = Rotation.from_rotvec(q).as_matrix()
     out = {}
     for s in ("gyro", "accel", "mag"):
         c = cal.sensor(s)

@@ -13,8 +13,7 @@ import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from ..io.base import ImuData
-from ..sim.motion import G0
-from ..sim.sensors import ACCEL_SPEC, GYRO_SPEC
+from ..specs import ACCEL_SPEC, G0, GYRO_SPEC
 from .layout import ATT, N_STATE, SENSOR_SLICE, correction, rodrigues, rot_log, sensor_model
 
 

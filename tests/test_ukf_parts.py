@@ -329,8 +329,8 @@ def test_ellipsoid_fit_recovers_hard_and_soft_iron_within_its_budget():
 
 
 def test_align_gauge_turns_every_sensor_by_one_rotation():
-    """align_gauge gives the chosen sensor the asked alpha and leaves every relative orientation (M_s M_acc⁻¹)
-    and every bias as it was."""
+    """align_gauge gives the chosen sensor the asked alpha and leaves every relative orientation (M_acc⁻¹ M_s,
+    unchanged by M → Q M) and every bias as it was."""
     from onlinecal.ukf.gauge import align_gauge
 
     sens = {s: _cal(_params(1)[0]) for s in ("gyro", "accel", "mag")}
@@ -339,8 +339,8 @@ def test_align_gauge_turns_every_sensor_by_one_rotation():
     out = align_gauge(cal, "accel", target)
     assert np.allclose(out.accel.alpha, target, atol=1e-10)
     for s in ("gyro", "mag"):
-        rel0 = cal.sensor(s).matrix @ np.linalg.inv(cal.accel.matrix)
-        rel1 = out.sensor(s).matrix @ np.linalg.inv(out.accel.matrix)
+        rel0 = np.linalg.inv(cal.accel.matrix) @ cal.sensor(s).matrix
+        rel1 = np.linalg.inv(out.accel.matrix) @ out.sensor(s).matrix
         assert np.allclose(rel0, rel1, atol=1e-12) and np.array_equal(out.sensor(s).bias, cal.sensor(s).bias)
     Q = out.gyro.matrix @ np.linalg.inv(cal.gyro.matrix)
     assert np.allclose(Q @ Q.T, np.eye(3), atol=1e-12) and np.linalg.det(Q) == pytest.approx(1.0)

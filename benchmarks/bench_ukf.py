@@ -1,13 +1,22 @@
-"""Speed of the block-vectorised UKF against filterpy's stock per-sample loop on the same model.
+"""Speed of the online UKF: the compiled path, the numpy reference path, filterpy's stock per-sample loop,
+and the flop-count limit for the same state size — in one run, with the ratios between them.
 
 A 10-minute 200 Hz flight log (simulated) is replayed in full through ``onlinecal.ukf.replay`` (one core:
-OMP/MKL/OPENBLAS_NUM_THREADS=1 are set before numpy loads). The stock ``UnscentedKalmanFilter`` (one
-predict + one accel update per IMU sample, filterpy's per-sigma-point Python loop) is timed on a shorter
-stretch in the same run and its per-sample cost extrapolated to the whole log — the output says so.
+OMP/MKL/OPENBLAS/NUMBA_NUM_THREADS=1 are set before numpy loads), cold start (no ``init``), once with the
+compiled kernels (``onlinecal.ukf.kernels``, backend "numba") and once with the numpy reference (backend
+"numpy"); the two results are compared (largest difference of any estimate or σ, relative to the larger of
+the estimate and its σ). The kernels are compiled (or loaded from numba's cache) before the timing; the
+compile/load time is printed on its own line. The stock ``UnscentedKalmanFilter`` (one predict + one accel
+update per IMU sample, filterpy's per-sigma-point Python loop) is timed on a shorter stretch and its
+per-sample cost extrapolated to the whole log — the output says so.
 
-Both are timed by the wall clock and by this process's CPU time (``time.process_time``): on a machine
-shared with other jobs the wall clock measures the load as much as the code, the CPU time much less so.
-The real-time factor is log duration / time; the speed-up is stock time / block time, per clock.
+The limit: the floating-point operations one filter block needs for this state size (counted below, per
+kernel: propagation of the dynamic sigma points through the block's samples, sensor models, Cholesky,
+unscented transform, measurement statistics, gain and covariance update), at the rate this core reaches on
+a dense matrix product of the same small size (numpy/BLAS, one thread) — what the arithmetic alone costs.
+
+Times are CPU time of this process (``time.process_time``) and wall clock; on a machine shared with other
+jobs the wall clock measures the load as much as the code. Ratios are from one run.
 
     PYTHONPATH=. python benchmarks/bench_ukf.py [--stock-samples N] [--minutes M] [--rate HZ]
 """
@@ -17,15 +26,69 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from pathlib import Path
 
-for _v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+for _v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import numpy as np  # noqa: E402
 
+from onlinecal.model import PARAMS, SENSORS  # noqa: E402
 from onlinecal.sim import simulate  # noqa: E402
-from onlinecal.ukf import OnlineCalibrator, replay  # noqa: E402
+from onlinecal.ukf import OnlineCalibrator, kernels, replay  # noqa: E402
 from onlinecal.ukf.stock import StockUKF  # noqa: E402
+
+
+def block_flops(n: int, n_dyn: int, L: int, m: int) -> dict[str, float]:
+    """Floating-point operations of one filter block (adds and multiplies; sin, cos, sqrt and divisions
+    counted as 10 each), for n states, 2n + 1 sigma points, n_dyn of them dynamic (own attitude), L IMU
+    samples and m stacked measurement components."""
+    S = 2 * n + 1
+    per_sample = (15 + 6  # calibrated rate M(w − o), its difference
+                  + 6 + 12  # trapezoid + coning
+                  + 4 * 10 + 25  # Rodrigues: sin, cos, sqrt, division + the matrix
+                  + 45 + 36)  # running product 3×3·3×3, sums for the block means
+    return {
+        "propagation": n_dyn * L * per_sample,
+        "sensor models": (n_dyn + 2 * S) * (6 * 10 + 6 * 10 + 2 * 45 + 18),
+        "Cholesky": n**3 / 3 + 2 * n * n,
+        "unscented transform": 2 * S * n + S * n * (n + 1),
+        "measurements": S * m * 20 + 2 * S * m * (m + 1) / 2 + 2 * S * n * m,
+        "gain + covariance": 2 * m**3 / 3 + 2 * n * m * m + 4 * n * n * m,
+    }
+
+
+def core_rate(size: int = 40, reps: int = 20000) -> float:
+    """flop/s of this core on a dense (size × 81)(81 × size) product, numpy/BLAS, one thread (best of 3)."""
+    a = np.random.default_rng(0).normal(size=(size, 2 * size + 1))
+    b = a.T.copy()
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.process_time()
+        for _ in range(reps):
+            a @ b
+        best = min(best, time.process_time() - t0)
+    return 2 * size * size * (2 * size + 1) * reps / best
+
+
+def _timed_replay(d, backend: str):  # type: ignore[no-untyped-def]
+    with kernels.use_backend(backend):
+        c0, t0 = time.process_time(), time.perf_counter()
+        res = replay([d], None)
+        return res, time.process_time() - c0, time.perf_counter() - t0
+
+
+def _max_rel_diff(a, b) -> float:  # type: ignore[no-untyped-def]
+    """Largest |Δ| of any estimate or σ between two calibrations, relative to max(|value|, σ)."""
+    worst = 0.0
+    for s in SENSORS:
+        ca, cb = a.sensor(s), b.sensor(s)
+        for p in PARAMS:
+            va, vb = np.asarray(ca.params()[p], float), np.asarray(cb.params()[p], float)
+            sa, sb = np.asarray(ca.sigma[p], float), np.asarray(cb.sigma[p], float)
+            scale = np.maximum(np.abs(vb), sb)
+            worst = max(worst, float(np.max(np.abs(va - vb) / scale)), float(np.max(np.abs(sa - sb) / sb)))
+    return worst
 
 
 def main() -> None:
@@ -34,33 +97,90 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=200.0)
     ap.add_argument("--stock-samples", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--profile", type=float, default=0.0, metavar="MIN",
+                    help="also profile the compiled path on the first MIN minutes: where the time goes")
     args = ap.parse_args()
     sim = simulate("flight", args.seed, duration=60 * args.minutes, imu_rate=args.rate)
     d = sim.data
-    log_s = d.duration
-    c0 = time.process_time()
-    res = replay([d], None)
-    cpu = time.process_time() - c0
-    wall = res.wall_s
-    print(f"log: {d.n_imu} IMU samples at {args.rate:g} Hz, {log_s:.0f} s (flight profile, cold start, "
-          f"events: {sorted({e['kind'] for e in res.events}) or 'none'})")
-    print(f"block UKF (onlinecal.ukf): {wall:.2f} s wall → {log_s / wall:.0f}× real time; "
-          f"{cpu:.2f} s CPU → {log_s / cpu:.0f}× real time ({1e6 * cpu / d.n_imu:.1f} µs CPU per IMU sample)")
+    log_s, N = d.duration, d.n_imu
+    print(f"log: {N} IMU samples at {args.rate:g} Hz, {log_s:.0f} s (flight profile, cold start); "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    if kernels.HAVE_NUMBA:
+        c0 = time.perf_counter()
+        _timed_replay(d.slice_imu(0, min(N, int(20 * args.rate))), "numba")  # compile or load the cache
+        print(f"kernels compiled or loaded from numba's cache: {time.perf_counter() - c0:.1f} s (not in the "
+              "times below)")
+    runs = {}
+    for be in (["numba"] if kernels.HAVE_NUMBA else []) + ["numpy"]:
+        runs[be] = _timed_replay(d, be)
+    names = {"numba": "compiled kernels (onlinecal.ukf, backend numba)",
+             "numpy": "numpy reference (onlinecal.ukf, backend numpy)"}
+    for be, (res, cpu, wall) in runs.items():
+        print(f"{names[be]}: {wall:.2f} s wall → {log_s / wall:.0f}× real time; {cpu:.2f} s CPU → "
+              f"{log_s / cpu:.0f}× real time ({1e6 * cpu / N:.1f} µs CPU per IMU sample, "
+              f"{1e6 * cpu / max(res.calibration.meta['online']['blocks'], 1):.0f} µs per filter block)")
+    cpu_new = runs.get("numba", runs["numpy"])[1]
+    cpu_np = runs["numpy"][1]
+    if "numba" in runs:
+        print(f"compiled / numpy reference: {cpu_np / cpu_new:.1f}× faster (CPU), "
+              f"{runs['numpy'][2] / runs['numba'][2]:.1f}× (wall); results differ by at most "
+              f"{_max_rel_diff(runs['numba'][0].calibration, runs['numpy'][0].calibration):.1e} relative "
+              "(any estimate or σ, against max(|value|, σ))")
     cal = OnlineCalibrator(None)
     x0, sig0 = cal._prior()
     sig0[:3] = 0.1
     stock = StockUKF(x0, np.diag(sig0**2), args.rate)
-    n = min(args.stock_samples, d.n_imu)
+    n = min(args.stock_samples, N)
     t0, c0 = time.perf_counter(), time.process_time()
     stock.run(d, n)
     s_wall, s_cpu = time.perf_counter() - t0, time.process_time() - c0
-    full_wall, full_cpu = s_wall / (n - 1) * d.n_imu, s_cpu / (n - 1) * d.n_imu
+    full_wall, full_cpu = s_wall / (n - 1) * N, s_cpu / (n - 1) * N
     print(f"stock filterpy UnscentedKalmanFilter, one predict+update per sample, timed on {n - 1} samples: "
           f"{1e6 * s_wall / (n - 1):.0f} µs wall, {1e6 * s_cpu / (n - 1):.0f} µs CPU per sample; "
           f"extrapolated to the whole log: {full_wall:.0f} s wall ({log_s / full_wall:.2f}× real time), "
           f"{full_cpu:.0f} s CPU ({log_s / full_cpu:.2f}× real time)")
-    print(f"speed-up of the block UKF over the stock loop: {full_wall / wall:.0f}× (wall), "
-          f"{full_cpu / cpu:.0f}× (CPU)")
+    print(f"speed-up over the stock loop (CPU): compiled {full_cpu / cpu_new:.0f}×, numpy reference "
+          f"{full_cpu / cpu_np:.0f}×")
+    L = max(1, round(0.1 * args.rate))
+    nst = cal.n
+    fl = block_flops(nst, len(cal.lay.dyn_pts), L, 6)
+    tot = sum(fl.values())
+    rate = core_rate()
+    lim_block = tot / rate
+    print(f"flop count per 0.1-s block (n = {nst} states, {2 * nst + 1} sigma points, {len(cal.lay.dyn_pts)} "
+          f"dynamic, {L} samples, 6 measurement components): {tot / 1e3:.0f} kflop ("
+          + ", ".join(f"{k} {v / 1e3:.0f}k" for k, v in fl.items()) + ")")
+    print(f"this core on a dense {nst}×{2 * nst + 1} product: {rate / 1e9:.1f} Gflop/s → limit "
+          f"{1e6 * lim_block:.0f} µs per block, {1e6 * lim_block / L:.2f} µs per IMU sample, "
+          f"{0.1 / lim_block:.0f}× real time")
+    blocks = runs[next(iter(runs))][0].calibration.meta["online"]["blocks"]
+    print(f"ratio to the limit (CPU per block / limit): compiled {cpu_new / blocks / lim_block:.1f}×, "
+          f"numpy reference {cpu_np / blocks / lim_block:.1f}×")
+    if args.profile > 0 and kernels.HAVE_NUMBA:
+        where_time_goes(d.slice_imu(0, min(N, int(60 * args.profile * args.rate))))
+
+
+def where_time_goes(d, top: int = 12) -> None:  # type: ignore[no-untyped-def]
+    """cProfile of a replay on the compiled path: the share of the time inside the compiled kernels, and
+    the Python functions with the most time of their own (``tottime``) — what is left to compile."""
+    import cProfile
+    import pstats
+
+    pr = cProfile.Profile()
+    with kernels.use_backend("numba"):
+        replay([d.slice_imu(0, 4000)], None)  # kernels loaded before the profile
+        pr.enable()
+        replay([d], None)
+        pr.disable()
+    st = pstats.Stats(pr)
+    rows = [(k, v[2]) for k, v in st.stats.items()]  # type: ignore[attr-defined]
+    total = sum(t for _, t in rows)
+    kern = sum(t for k, t in rows if k[0].endswith("kernels.py") and k[2].endswith("_kernel"))
+    print(f"profile of {d.duration:.0f} s (cProfile adds its own cost per Python call): {100 * kern / total:.0f} % of "
+          f"the time inside the compiled kernels, {100 * (1 - kern / total):.0f} % in Python around them; "
+          "the Python functions with the most time of their own:")
+    for (f, line, name), t in sorted(rows, key=lambda r: -r[1])[:top]:
+        print(f"  {100 * t / total:5.1f} %  {Path(f).name}:{line} {name}")
 
 
 if __name__ == "__main__":

@@ -41,7 +41,8 @@ from .blocks import value_lattice as value_lattice
 from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
 from .geometry import rodrigues1
 from .health import EventLog, NisMonitor
-from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, field_world, index, model_pair
+from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
+from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, field_world, index
 from .measurements import (
     AccelModel,
     MagModel,
@@ -56,9 +57,10 @@ from .noise import NoiseModel, lattice_plan, mag_unit_of
 from .noise import hold_sigma as hold_sigma  # re-exported
 from .outputs import calibration_of, extensions_of, extensions_sigma, missing_motion, observability, trace_row
 from .predict import block_process_noise, propagate_sigma_points
+from .propagate import sensor_models
 from .rest import RestAccumulator
 from .state import StateLayout, choose_gauge, grow, initial_state, prior, reset_states
-from .unscented import Gating, Measurement, UpdateResult, merwe_weights, predict_moments, sigma_points, update
+from .unscented import Gating, Measurement, UpdateResult, merwe_weights
 
 Array = NDArray[np.float64]
 STATE_SCHEMA = checkpoint.STATE_SCHEMA
@@ -487,7 +489,7 @@ class OnlineCalibrator:
             self._rest_acc = None
             self._diverged("covariance is not positive definite", tl)
             return
-        sens = model_pair(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
+        sens = sensor_models(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
         off = (self._offsets("accel", held["accel"]), self._offsets("mag", held["mag"]), self._offsets("gyro", True))
         meas = rest_measurements(self._models, X, self.R_nom, sens, acc, (self._Wm, self._Wc), off,
                                  float(np.mean(self.x[index("gyro", "scale")])))

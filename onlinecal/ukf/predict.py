@@ -8,10 +8,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .blocks import Blocks
-from .geometry import rot_log
-from .layout import ATT, SENSOR_SLICE, model_pair
+from .layout import ATT, SENSOR_SLICE
 from .noise import bilinear_var
-from .propagate import BlockPrediction, interp_weights, propagate_block
+from .propagate import BlockPrediction, attitude_errors, interp_weights, propagate_block, sensor_models
 
 Array = NDArray[np.float64]
 
@@ -28,14 +27,14 @@ def propagate_sigma_points(X: Array, R_nom: Array, B: Blocks, b: int, dyn: NDArr
     c_mag = None
     if use_mag:
         k0, n_m = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
-        c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], j - i)  # type: ignore[arg-type]
+        c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], j - i)
     Sd = dyn.shape[0]
-    o_all, M_all, Minv_all = model_pair(np.concatenate(
+    o_all, M_all, Minv_all = sensor_models(np.concatenate(
         [X[dyn, SENSOR_SLICE["gyro"]], X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
     pred = propagate_block(X, R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag,
-                           dyn,  # type: ignore[arg-type]  # (propagate.py annotates an index array as float)
+                           dyn,
                            (o_all[:Sd], M_all[:Sd]), gyro_extra)
-    X[dyn, ATT] = rot_log(pred.R_end[0].T @ pred.R_end)  # sigma point 0 is the mean
+    X[dyn, ATT] = attitude_errors(pred.R_end)  # sigma point 0 is the mean
     return pred, (o_all[Sd:], M_all[Sd:], Minv_all[Sd:])
 
 

@@ -21,21 +21,30 @@ model inverted (raw = M⁻¹ c + o, eq. 1) applied to gravity and the field in t
 
 averaged over the samples of the block (the block mean is what the filter compares with the data). The
 mean is linear in R, so the mean attitude over the samples is formed first and used once.
+
+:func:`propagate_block`, :func:`sensor_models` and :func:`attitude_errors` run on the backend of
+:mod:`onlinecal.ukf.kernels` (``ONLINECAL_KERNELS``): the compiled loop kernels there by default, or the
+numpy functions (:func:`propagate_block_numpy`, :func:`onlinecal.ukf.layout.model_pair`,
+:func:`onlinecal.ukf.layout.rot_log`), which are the reference the kernels are tested against.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from . import kernels
 from .layout import (
     ATT,
     DIP,
     SENSOR_SLICE,
+    model_pair,
     prefix_products_cm,
     rodrigues_cm,
+    rot_log,
     sensor_model,
 )
 
@@ -72,7 +81,7 @@ def mag_weights(t_prev: float, t: Array, t_mag: Array) -> Array:
     return interp_weights(j, frac, L)
 
 
-def interp_weights(j: Array, frac: Array, L: int) -> Array:
+def interp_weights(j: NDArray[Any], frac: Array, L: int) -> Array:
     """c (L + 1,) from the interpolation indices j (M,) in 1..L and fractions frac (M,) of M mag samples:
     sample m sits between IMU ticks j−1 and j (tick 0: the sample before the block) at ``frac``."""
     c = np.bincount(j, weights=frac, minlength=L + 1) + np.bincount(j - 1, weights=1.0 - frac, minlength=L + 1)
@@ -85,11 +94,31 @@ def propagate_block(
     w: Array,
     dt: Array,
     c_mag: Array | None,
-    dyn: Array,
+    dyn: NDArray[Any],
     gyro: tuple[Array, Array],
     b_extra: Array | None = None,
 ) -> BlockPrediction:
-    """Integrate the attitude of every sigma point over one block of L IMU samples.
+    """Integrate the attitude of every sigma point over one block of L IMU samples (arguments and result:
+    :func:`propagate_block_numpy`), on the backend of :mod:`onlinecal.ukf.kernels` (``ONLINECAL_KERNELS``):
+    the compiled kernel, or the numpy reference."""
+    if kernels.backend() == "numpy":
+        return propagate_block_numpy(X, R_nom, w, dt, c_mag, dyn, gyro, b_extra)
+    o_g, M_g = gyro
+    R_end, f_body, h_body = kernels.propagate_numba(X, R_nom, w, dt, c_mag, dyn, o_g, M_g, b_extra, DIP)
+    return BlockPrediction(R_end, f_body, h_body, o_g[0], M_g[0])
+
+
+def propagate_block_numpy(
+    X: Array,
+    R_nom: Array,
+    w: Array,
+    dt: Array,
+    c_mag: Array | None,
+    dyn: NDArray[Any],
+    gyro: tuple[Array, Array],
+    b_extra: Array | None = None,
+) -> BlockPrediction:
+    """Integrate the attitude of every sigma point over one block of L IMU samples (numpy reference).
 
     X (S, n) sigma points (δθ in X[:, 0:3], the gyro terms in X[:, 3:15], the dip in X[:, 39]);
     R_nom (3, 3) nominal attitude; w (L + 1, 3) rad/s the raw rates at the block's L samples and the one
@@ -151,3 +180,24 @@ def predict_raw(X: Array, sensor: str, v_body: Array) -> Array:
     """
     o, Minv = sensor_model(X[:, SENSOR_SLICE[sensor]])
     return np.einsum("sij,sj->si", Minv, v_body) + o
+
+
+def sensor_models(p: Array) -> tuple[Array, Array, Array]:
+    """(o (N, 3), M (N, 3, 3), M⁻¹ (N, 3, 3)) of eq. 1 with eqs. 2–6 for N parameter rows p (N, 12), on
+    the kernel backend (:func:`onlinecal.ukf.kernels.model_pair_kernel`, or the numpy reference
+    :func:`onlinecal.ukf.layout.model_pair`)."""
+    if kernels.backend() == "numpy":
+        return model_pair(p)
+    out: tuple[Array, Array, Array] = kernels.model_pair_kernel(np.ascontiguousarray(p, dtype=np.float64))
+    return out
+
+
+def attitude_errors(R_end: Array) -> Array:
+    """Rotation vectors (S_d, 3) of R_end[0]ᵀ R_end[s] for R_end (S_d, 3, 3): each propagated sigma
+    point's attitude relative to the mean's (row 0), on the kernel backend (numpy reference:
+    :func:`onlinecal.ukf.layout.rot_log`)."""
+    if kernels.backend() == "numpy":
+        out: Array = rot_log(R_end[0].T @ R_end)
+        return out
+    out = kernels.rot_log_rel_kernel(np.ascontiguousarray(R_end, dtype=np.float64))
+    return out

@@ -66,7 +66,7 @@ def read_json(path: str | Path) -> Any:
             raise CalFileError(f"{path}: {size} bytes is far too large for a calibration JSON")
         text = p.read_bytes().decode("utf-8")
     except UnicodeDecodeError as e:
-        raise CalFileError(f"{path}: not UTF-8 text (byte {e.start})") from None
+        raise CalFileError(f"{path}: not a calibration JSON (not UTF-8 text at byte {e.start})") from None
     except OSError as e:
         raise CalFileError(f"{path}: cannot read ({e.strerror or e})") from None
     try:
@@ -74,9 +74,10 @@ def read_json(path: str | Path) -> Any:
     except _Dup as e:
         raise CalFileError(f"{path}: duplicate key {e.args[0]!r}") from None
     except json.JSONDecodeError as e:
-        raise CalFileError(f"{path}: not JSON ({e.msg} at line {e.lineno} column {e.colno})") from None
+        raise CalFileError(f"{path}: not a calibration JSON (invalid JSON: {e.msg} at line {e.lineno} "
+                           f"column {e.colno})") from None
     except (ValueError, RecursionError) as e:
-        raise CalFileError(f"{path}: not JSON ({e})") from None
+        raise CalFileError(f"{path}: not a calibration JSON (invalid JSON: {e})") from None
 
 
 def _array(path: str, field: str, v: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -145,7 +146,7 @@ def validate_sensor(path: str, s: str, d: Any) -> dict[str, Any]:
 def calibration_from_obj(obj: Any, path: str = "calibration") -> Calibration:
     """A :class:`Calibration` from a parsed calibration or truth JSON, validated (see the module doc)."""
     if not isinstance(obj, dict):
-        raise CalFileError(f"{path}: expected a JSON object, got {_short(obj)}")
+        raise CalFileError(f"{path}: not a calibration JSON (expected a JSON object, got {_short(obj)})")
     if obj.get("schema") == TRUTH_SCHEMA:  # the simulator's truth file: its calibration is the truth
         inner = obj.get("calibration")
         if not isinstance(inner, dict):
@@ -153,7 +154,8 @@ def calibration_from_obj(obj: Any, path: str = "calibration") -> Calibration:
         return calibration_from_obj(inner, path)
     schema = obj.get("schema")
     if schema not in CAL_SCHEMAS:
-        raise CalFileError(f"{path}: schema: {_short(schema)}, expected {SCHEMA!r} (or a {TRUTH_SCHEMA!r} file)")
+        raise CalFileError(f"{path}: not a calibration JSON (schema {_short(schema)}, expected {SCHEMA!r} "
+                           f"or a {TRUTH_SCHEMA!r} file)")
     sensors = {s: validate_sensor(path, s, obj[s]) for s in SENSORS if obj.get(s) is not None}
     if not sensors:
         raise CalFileError(f"{path}: holds no sensor (gyro, accel or mag)")

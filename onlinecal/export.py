@@ -219,7 +219,7 @@ class Export:
     def report(self) -> dict[str, Any]:
         """The JSON sidecar: parameters, where each came from, what was withheld, dropped parts, warnings."""
         return {
-            "schema": "onlinecal.export/2", "format": self.fmt, "mag_unit": self.mag_unit,
+            "schema": "onlinecal.export/1", "format": self.fmt, "mag_unit": self.mag_unit,
             "params": dict(self.params), "origin": dict(self.origin), "withheld": dict(self.withheld),
             "composed_with_onboard": self.composed,
             "dropped": {k: v.to_dict() for k, v in self.dropped.items()},

@@ -164,7 +164,8 @@ def mag_coverage(mag_cal: Any, cells: int = COVERAGE_CELLS) -> float:
 
 def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -> list[str]:
     """Terms the data did not determine: posterior σ / prior σ > ½ (the filter's observability), or, with
-    no observability, a term of a present sensor without any σ (the batch left it at its start value)."""
+    no observability, a term without σ of a sensor that has σ for others (the batch left it at its start
+    value)."""
     if observability:
         return sorted(k for k, v in observability.items()
                       if isinstance(v, dict) and isinstance(v.get("ratio"), (int, float))
@@ -173,7 +174,7 @@ def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -
     out = []
     for s in SENSORS:
         c = cal.sensor(s)
-        if c is None:
+        if c is None or not c.sigma:  # no σ at all (a truth or hand-written file): unknown, not undetermined
             continue
         for p in ("bias", "scale", "alpha", "xi"):
             sig = c.sigma.get(p)

@@ -24,6 +24,8 @@ On a normal exit a bar ends at 100 %; on an exception it stays where the work st
 
 from __future__ import annotations
 
+import io
+import os
 import sys
 import threading
 from collections.abc import Sequence
@@ -52,6 +54,16 @@ def enabled(stream: TextIO | None = None) -> bool:
         return False
 
 
+def _columns(stream: TextIO) -> int:
+    """The terminal's width; a pseudo-terminal without a size (0 columns, 0 rows) would make tqdm draw
+    nothing, so such a terminal gets 120 columns (and every bar ``nrows=20``)."""
+    try:
+        n = os.get_terminal_size(stream.fileno()).columns
+    except (AttributeError, ValueError, OSError, io.UnsupportedOperation):
+        n = 0
+    return n if n >= 40 else 120
+
+
 class Progress:
     """One tqdm bar: ``desc [#####.....]  42% 12/30 unit [00:03<00:04]  note``.
 
@@ -74,7 +86,7 @@ class Progress:
         fmt = ("{desc} [{bar:" + str(width) + "}] {percentage:3.0f}% {n_fmt}/{total_fmt} " + unit
                + " [{elapsed}<{remaining}]{postfix}") if total else ("{desc} {n_fmt} " + unit + " [{elapsed}]{postfix}")
         self._bar = tqdm(total=total, desc=desc, file=self.stream, delay=delay_s, mininterval=min_interval_s,
-                         ascii=".#", bar_format=fmt, dynamic_ncols=False, leave=True)
+                         ascii=".#", bar_format=fmt, ncols=_columns(self.stream), nrows=20, leave=True)
         if tick_s > 0:
             self._ticker = threading.Thread(target=self._tick, args=(tick_s,), daemon=True)
             self._ticker.start()

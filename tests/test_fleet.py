@@ -19,7 +19,7 @@ DAY = 86400.0
 TLOG_EPOCH_S = 1_700_000_000.0  # write_tlog stamps records with this wall-clock base + the IMU time
 DRIFT = 1e-3  # rad/s per day, gyro bias x of the drifting unit
 RECORD_KEYS = {"schema", "log", "ok", "error", "calibration", "init", "n_imu", "log_s", "wall_s", "t_start",
-               "t_start_source", "warnings"}
+               "t_start_source", "warnings", "health"}
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:

@@ -47,7 +47,7 @@ class Unavailable(Exception):
     """A command or option this version does not have yet; says so instead of a made-up answer."""
 
 
-def _scales(a: argparse.Namespace) -> dict[str, float | None]:
+def _scales(a: argparse.Namespace) -> dict[str, Any]:
     return {"acc_scale": a.acc_scale, "gyro_scale": a.gyro_scale, "mag_scale": a.mag_scale}
 
 

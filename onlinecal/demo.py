@@ -22,8 +22,8 @@ def _online(logs: list, init: Calibration, on_progress: Any = None) -> tuple[Any
     try:
         from . import ukf
     except ImportError:
-        ukf = None
-    if ukf is None or not hasattr(ukf, "replay"):
+        return None, "online filter not available in this build"
+    if not hasattr(ukf, "replay"):
         return None, "online filter not available in this build"
     from .fleet import replay_chunked
 
@@ -71,9 +71,9 @@ def run_demo(out: Path, seed: int = 0) -> int:
         n = max(1, data.n_imu)
         ores, why = _online([data], batch, lambda i, _n: st.set(4, note=f"online filter {100 * min(i, n) // n}%"))
         t_online = time.perf_counter() - t0
-        online = ores.calibration if ores is not None else None
+        online: Calibration | None = ores.calibration if ores is not None else None
         h_online = None
-        if ores is not None:
+        if ores is not None and online is not None:
             h_online = assess(online, nis=ores.nis, events=ores.events, observability=ores.observability,
                               mag_raw=data.mag if data.n_mag else None)
             _save(online, h_online, out / "online.json")

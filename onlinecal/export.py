@@ -364,7 +364,7 @@ def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss",
         put3("INS_GYROFFS_{}" if ap else "CAL_GYRO0_{}OFF", cal.gyro.bias)
         gyr_block = {n: params.pop(n) for n in list(params)[before:]}
         dropped["gyro"] = Dropped.from_E(
-            "gyro", np.linalg.inv(cal.gyro.matrix), 1.0,
+            "gyro", np.asarray(np.linalg.inv(cal.gyro.matrix), float), 1.0,
             "the gyroscope's scale, misalignment and non-orthogonality; only the bias is kept")
         warnings.append("gyro: the firmware re-estimates its gyro offsets at every boot (ArduPilot INS_GYR_CAL, "
                         "PX4's gyro calibration at start-up), overwriting these unless that is turned off")
@@ -526,8 +526,8 @@ def firmware_correction(onboard: dict[str, float], fmt: str, mag_unit: str = "ga
             dia = _diag_or(onboard, [f"COMPASS_DIA_{a}" for a in "XYZ"], 1.0, zero_is_default=True)
             odi = _diag_or(onboard, [f"COMPASS_ODI_{a}" for a in "XYZ"], 0.0)
             W = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
-            sc = float(onboard.get("COMPASS_SCALE", 1.0)) or 1.0
-            out["mag"] = SensorCalibration(-ofs / k, sc * W)  # W (raw·k + OFS) / k = W (raw − (−OFS/k))
+            cs = float(onboard.get("COMPASS_SCALE", 1.0)) or 1.0
+            out["mag"] = SensorCalibration(-ofs / k, cs * W)  # W (raw·k + OFS) / k = W (raw − (−OFS/k))
     else:
         if any(n.startswith("CAL_ACC0_") for n in onboard):
             off = _diag_or(onboard, [f"CAL_ACC0_{a}OFF" for a in "XYZ"], 0.0)

@@ -70,7 +70,7 @@ def log_start_time(path: str | Path, data: Any = None) -> tuple[float | None, st
                     return s, "tlog"
         except OSError:
             pass
-    if data is not None and getattr(data, "n_imu", 0):
+    if data is not None and int(getattr(data, "n_imu", 0) or 0) > 0:
         t0 = float(data.t_imu[0])
         if _EPOCH_LO <= t0 <= _EPOCH_HI:
             return t0, "log"
@@ -103,7 +103,8 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
         "health": None,
     }
     try:
-        d = read_log(path, **(scales or {}))
+        sc: dict[str, Any] = dict(scales or {})
+        d = read_log(path, **sc)
         rec["n_imu"], rec["log_s"] = d.n_imu, d.duration
         rec["t_start"], rec["t_start_source"] = log_start_time(path, d)
         warnings = list(d.warnings)

@@ -267,8 +267,8 @@ def write_report(out_dir: str | Any, logs: list[Any], command: str, batch: Any =
                "| k | log | t0 [s] | t1 [s] | samples | ‖ā‖ raw [m/s²] | "
                + " | ".join(f"‖ā‖ {k} [m/s²]" for k in acals) + " |",
                "|---:|---:|---:|---:|---:|---:|" + "---:|" * len(acals)]
-        for k, ((i, iv), a) in enumerate(zip(sts, means, strict=True)):
-            md.append(f"| {k} | {i} | {iv.t0:.6f} | {iv.t1:.6f} | {iv.n} | {np.linalg.norm(a):.5f} | "
+        for j, ((i, iv), a) in enumerate(zip(sts, means, strict=True)):
+            md.append(f"| {j} | {i} | {iv.t0:.6f} | {iv.t1:.6f} | {iv.n} | {np.linalg.norm(a):.5f} | "
                       + " | ".join(f"{np.linalg.norm(c.apply(a)):.5f}" for c in acals.values()) + " |")
         md += ["", "</details>", ""]
     else:
@@ -280,14 +280,14 @@ def write_report(out_dir: str | Any, logs: list[Any], command: str, batch: Any =
         md += ["## Online filter: parameters over time", "",
                "Each UKF calibration term over the replay: estimate, ±3σ band from the filter's covariance, and "
                + (", ".join(f"the {k} value (dashed)" for k in refs) or "no reference value") + ".", ""]
-        for s in SENSORS:
-            if ocal is None or ocal.sensor(s) is None:
+        for sn in SENSORS:
+            if ocal is None or ocal.sensor(sn) is None:
                 continue
-            step(f"ukf {s}")
-            name = plots.ukf_params(out / f"ukf_{s}.png", online.trace,
-                                    s, {k: c.sensor(s) for k, c in refs.items()}).name
+            step(f"ukf {sn}")
+            name = plots.ukf_params(out / f"ukf_{sn}.png", online.trace,
+                                    sn, {k: c.sensor(sn) for k, c in refs.items()}).name
             files.append(name)
-            md += [f"![{s} parameters]({name})", ""]
+            md += [f"![{sn} parameters]({name})", ""]
         md += [f"Replay: {online.n_imu} IMU samples, {online.log_s:.1f} s of log in {online.wall_s:.2f} s "
                f"({online.realtime_factor:.0f}× real time); {len(online.events)} filter events.", ""]
         if online.missing_motion:

@@ -16,7 +16,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def cli(*args: str, timeout: float = 300, env: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
+def cli(*args: str, timeout: float = 300, env: dict | None = None,
+        cwd: Path | None = None) -> subprocess.CompletedProcess:
     e = dict(os.environ, PYTHONPATH=str(REPO), **(env or {}))
     return subprocess.run([sys.executable, "-m", "onlinecal", *args], capture_output=True, text=True,
                           timeout=timeout, env=e, cwd=cwd)

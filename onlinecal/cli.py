@@ -52,8 +52,18 @@ def _scales(a: argparse.Namespace) -> dict[str, Any]:
 
 
 def _read_logs(paths: Sequence[str], a: argparse.Namespace) -> list[Any]:
+    import stat
+
     from .io import read_log
 
+    for p in paths:
+        try:
+            mode = os.stat(p).st_mode
+        except OSError:
+            continue  # missing: the reader's own one-line message
+        if stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode) or stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+            # a FIFO or device never ends: reading it would hang instead of refusing it
+            raise UsageError(f"{p}: not a regular file (a FIFO, socket or device); give a log file")
     return [read_log(p, **_scales(a)) for p in paths]
 
 
@@ -425,8 +435,8 @@ def cmd_compare(a: argparse.Namespace) -> int:
     from .report import compare, compare_text
 
     ca, cb = _load_cal(a.a), _load_cal(a.b)
-    rows = compare(ca, cb)
-    print(compare_text(ca, cb, rows=rows, tol=a.tol, abs_tol=a.abs_tol))
+    rows = compare(ca, cb, a.tol, a.abs_tol)
+    print(compare_text(ca, cb, rows=rows))
     if a.tol is None and a.abs_tol is None:
         return 0
     beyond = [r for r in rows if r.get("beyond")]

@@ -117,7 +117,7 @@ def compare(a: Calibration, b: Calibration, tol: float | None = None,
 def compare_text(a: Calibration, b: Calibration, rows: list[dict[str, Any]] | None = None,
                  tol: float | None = None, abs_tol: float | None = None) -> str:
     """The comparison as a table with a space between every column; rows beyond the tolerance flagged."""
-    if rows is None or tol is not None or abs_tol is not None:
+    if rows is None:
         rows = compare(a, b, tol, abs_tol)
     head = f"{'parameter':<16} {'unit':<6} {'A':>13} {'B':>13} {'B − A':>11} {'σ':>9} {'|Δ|/σ':>8}"
     lines = [head, "-" * (len(head) + 8)]

@@ -128,6 +128,16 @@ def _show_health(health: dict[str, Any], what: str) -> int:
     return exit_status(health)
 
 
+def _raw(logs: Sequence[Any] | None) -> dict[str, Any] | None:
+    """Raw gyro and accel samples of the logs, for the health verdict's rail (saturation) check."""
+    import numpy as np
+
+    logs = [d for d in (logs or []) if getattr(d, "n_imu", 0)]
+    if not logs:
+        return None
+    return {"gyro": np.concatenate([d.gyro for d in logs]), "accel": np.concatenate([d.acc for d in logs])}
+
+
 def _mag_raw(logs: Sequence[Any]) -> Any:
     import numpy as np
 
@@ -195,7 +205,7 @@ def cmd_batch(a: argparse.Namespace) -> int:
         dt = time.perf_counter() - t0
         written = write_report(report, logs, "batch", batch=res, g=a.gravity, progress=st) if report else []
     _warn(res.warnings)
-    health = assess(res.calibration, mag_raw=_mag_raw(logs))
+    health = assess(res.calibration, mag_raw=_mag_raw(logs), raw=_raw(logs))
     out = _human(a.json)
     print(truth_table(None, res.calibration, None), file=out)
     print(f"batch pipeline: {sum(d.n_imu for d in logs)} IMU samples in {dt:.2f} s", file=out)
@@ -245,7 +255,7 @@ def online_health(res: Any, logs: Sequence[Any] | None = None) -> dict[str, Any]
 
     return assess(res.calibration, events=getattr(res, "events", None), nis=getattr(res, "nis", None),
                   observability=getattr(res, "observability", None),
-                  mag_raw=_mag_raw(logs) if logs else None)
+                  mag_raw=_mag_raw(logs) if logs else None, raw=_raw(logs))
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
@@ -496,7 +506,7 @@ def cmd_diagnose(a: argparse.Namespace) -> int:
     elif "error" in ub:
         print(f"  UKF stage: {ub['error']}", file=out)
     print(f"diagnose: {sum(d.n_imu for d in logs)} IMU samples in {diag.timing.get('total', 0):.1f} s", file=out)
-    health = assess(diag.calibration, nis=nis, events=[], mag_raw=_mag_raw(logs))
+    health = assess(diag.calibration, nis=nis, events=[], mag_raw=_mag_raw(logs), raw=_raw(logs))
     if a.json:
         from .files import OutputError, write_json
 

@@ -123,7 +123,7 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
         from .health import assess
 
         health = assess(res.calibration, nis=res.nis, events=res.events, observability=res.observability,
-                        mag_raw=d.mag if d.n_mag else None)
+                        mag_raw=d.mag if d.n_mag else None, raw={"gyro": d.gyro, "accel": d.acc})
         rec["calibration"] = {**res.calibration.replace(meta={**res.calibration.meta, "health": health}).to_dict(),
                               "health": health}
         rec["health"] = health

@@ -47,7 +47,11 @@ BIAS_MAX = {"gyro": 1.0, "accel": 3.0}  # rad/s, m/s²
 NIS_DOF = 3
 NIS_OK = (0.5, 2.0)  # × dof: the mean NIS of a consistent filter
 NIS_FAILED = 10.0  # × dof
-NIS_MIN_WINDOWS = 3
+NIS_MIN_WINDOWS = 3  # for the degraded band; one window far above 10 d already fails
+GATE_DEGRADED = 0.10  # share of a sensor's updates rejected by the filter's gate
+GATE_FAILED = 0.40
+RAIL_MIN = {"gyro": 1.0, "accel": 19.6}  # rad/s, m/s²: no rail is below (250 °/s gyros, 2 g accels)
+RAIL_SAMPLES = 10  # samples at an axis' largest magnitude that make it a rail, not a peak
 UNDETERMINED_RATIO = 0.5  # posterior σ / prior σ above this: the data did not determine the term
 COVERAGE_MIN = 0.4
 COVERAGE_CELLS = 32
@@ -109,8 +113,13 @@ def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[
         if not isinstance(st, dict):  # "band", "events_total": figures, not a sensor
             continue
         m, w = st.get("mean"), int(st.get("windows") or 0)
-        if m is None or not isinstance(m, (int, float)) or not math.isfinite(m) or w < NIS_MIN_WINDOWS:
-            figs[s] = {"mean": None, "windows": w, "expected": NIS_DOF, "status": "too few updates"}
+        gate = _gate_check(s, st)
+        if gate is not None:
+            out.append(gate)
+        finite = isinstance(m, (int, float)) and math.isfinite(m)
+        if not finite or (w < NIS_MIN_WINDOWS and not (w >= 1 and m > NIS_FAILED * NIS_DOF)):
+            figs[s] = {"mean": float(m) if finite else None, "windows": w, "expected": NIS_DOF,
+                       "status": "too few updates"}
             continue
         status = "ok"
         if m > NIS_FAILED * NIS_DOF:
@@ -124,6 +133,46 @@ def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[
                                     "its σ are not to be trusted"))
         figs[s] = {"mean": float(m), "windows": w, "expected": NIS_DOF, "band": [lo, hi], "status": status}
     return out, figs
+
+
+def _gate_check(sensor: str, st: dict[str, Any]) -> tuple[str, str] | None:
+    """A sensor whose updates the filter's outlier gate rejected in large numbers: the model and the data
+    disagree (a consistent filter rejects about one in a thousand)."""
+    up, rej = int(st.get("updates") or 0), int(st.get("rejected") or 0)
+    if up + rej < 20 or rej == 0:
+        return None
+    share = rej / (up + rej)
+    if share > GATE_FAILED:
+        return ("failed", f"{sensor}: the filter's gate rejected {rej} of {up + rej} updates ({100 * share:.0f} %): "
+                          "the calibration does not describe the data")
+    if share > GATE_DEGRADED:
+        return ("degraded", f"{sensor}: the filter's gate rejected {rej} of {up + rej} updates ({100 * share:.0f} %)")
+    return None
+
+
+def rail_checks(raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, int]]:
+    """Saturation seen in the raw samples (``raw``: sensor → (N, 3)): an axis whose largest magnitude,
+    above :data:`RAIL_MIN`, recurs in at least :data:`RAIL_SAMPLES` samples is at its rail (a true peak is
+    reached once) → degraded, whether or not the filter raised an event."""
+    out: list[tuple[str, str]] = []
+    counts: dict[str, int] = {}
+    for s, x in (raw or {}).items():
+        if x is None or s not in RAIL_MIN:
+            continue
+        a = np.abs(np.asarray(x, float).reshape(-1, 3))
+        a = np.where(np.isfinite(a), a, 0.0)
+        if a.shape[0] == 0:
+            continue
+        top = a.max(axis=0)
+        at = (a >= top * (1 - 1e-9)) & (top > RAIL_MIN[s])
+        rail = at.sum(axis=0) >= RAIL_SAMPLES  # axes pinned at their largest magnitude, not a lone peak
+        n = int(at[:, rail].any(axis=1).sum()) if rail.any() else 0
+        if n:
+            counts[s] = n
+            axes = ", ".join(f"{'xyz'[k]} ±{top[k]:.4g}" for k in range(3) if rail[k])
+            out.append(("degraded", f"{s}: {n} samples at the sensor's rail ({axes}): clipped readings "
+                                    "(saturation) bias every term they enter"))
+    return out, counts
 
 
 def event_checks(events: Iterable[dict[str, Any]] | None) -> tuple[list[tuple[str, str]], dict[str, Any]]:
@@ -185,12 +234,13 @@ def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -
 
 def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Sequence[dict[str, Any]] | None = None,
            observability: dict[str, Any] | None = None, mag_raw: Any = None,
-           warnings: Sequence[str] = ()) -> dict[str, Any]:
+           raw: dict[str, Any] | None = None, warnings: Sequence[str] = ()) -> dict[str, Any]:
     """The health verdict of ``cal`` (see the module doc).
 
     ``nis`` and ``events`` default to ``cal.meta["online"]`` (an online result); ``observability``: the
     filter's per-term posterior/prior σ ratio; ``mag_raw`` (M, 3): the raw magnetometer samples the result
-    was fitted on, for the coverage check; ``warnings``: the fit's own warnings (kept as notes).
+    was fitted on, for the coverage check; ``raw``: sensor → raw samples (N, 3) for the rail check
+    (:func:`rail_checks`); ``warnings``: the fit's own warnings (kept as notes).
     Returns ``{"schema", "verdict", "reasons", "notes", "checks"}``.
     """
     online = cal.meta.get("online", {}) if isinstance(cal.meta, dict) else {}
@@ -208,6 +258,10 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
     ef, ev = event_checks(events)
     found += ef
     checks.update(ev)
+    rf, rails = rail_checks(raw)
+    if not ev.get("saturation"):  # the filter's own saturation event already says it
+        found += rf
+    checks["rail_samples"] = rails
     notes: list[str] = []
     if mag_raw is not None and cal.mag is not None:
         try:

@@ -230,3 +230,20 @@ def test_fifo_log_refused_at_once(tmp_path: Path) -> None:
     t0 = time.monotonic()
     line = one_line(cli("batch", str(fifo), timeout=60))
     assert str(fifo) in line and "not a regular file" in line and time.monotonic() - t0 < 30
+
+
+MARG = REPO.parent / "shared" / "data" / "marg-set1"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (MARG / "tilt-sphere.csv").is_file(), reason="measured data ../shared/data absent")
+def test_issue_row_replay_tilt_sphere_is_not_trusted(tmp_path: Path) -> None:
+    """`replay marg-set1/tilt-sphere.csv` printed gyro.scale.y 0.602 with no warning and exit 0, its JSON
+    holding a magnetometer NIS mean of 60 589. Now: failed, exit 5, the reasons on stderr and in the JSON."""
+    out = tmp_path / "t.json"
+    r = cli("replay", str(MARG / "tilt-sphere.csv"), "--json", str(out), "-q", timeout=900)
+    h = json.loads(out.read_text())["health"]
+    assert r.returncode == 5 and h["verdict"] == "failed", r.stderr
+    text = " | ".join(h["reasons"])
+    assert "mag: mean NIS" in text and "rail" in text and "gate rejected" in text, text
+    assert "health of the online calibration: failed" in r.stderr

@@ -46,10 +46,21 @@ def test_plausible_consistent_result_is_ok() -> None:
 
 
 def test_issue_row_mag_nis_60589_fails() -> None:
-    """replay tilt-sphere.csv: magnetometer NIS mean 60 589 (3 expected) and no warning → failed."""
+    """replay tilt-sphere.csv: magnetometer NIS mean 60 589 (3 expected) and no warning → failed, even from
+    the single NIS window that run produced (and its gate rejecting 115 of 238 updates)."""
     h = assess(good().replace(meta=online_meta({"accel": 3.1, "mag": 60589.0})))
     assert h["verdict"] == "failed" and exit_status(h) == 5
     assert any(r.startswith("mag: mean NIS 6.059e+04") for r in h["reasons"]), h["reasons"]
+    one = {"online": {"nis": {"mag": {"mean": 60589.0, "windows": 1, "updates": 123, "rejected": 115}}}}
+    h1 = assess(good().replace(meta=one))
+    assert h1["verdict"] == "failed" and len(h1["reasons"]) == 2, h1["reasons"]
+    assert "rejected 115 of 238 updates (48 %)" in h1["reasons"][0]
+
+
+@pytest.mark.parametrize("rej, verdict", [(0, "ok"), (3, "ok"), (40, "degraded"), (250, "failed")])
+def test_gate_rejections(rej: int, verdict: str) -> None:
+    meta = {"online": {"nis": {"accel": {"mean": 3.0, "windows": 30, "updates": 300, "rejected": rej}}}}
+    assert assess(good().replace(meta=meta))["verdict"] == verdict
 
 
 @pytest.mark.parametrize("m, verdict", [(1.6, "ok"), (5.9, "ok"), (7.0, "degraded"), (1.2, "degraded"),
@@ -85,6 +96,31 @@ def test_divergence_and_saturation_are_visible() -> None:
     assert h["verdict"] == "degraded" and h["checks"]["divergences"] == 1 and h["checks"]["saturation"] == 1
     assert any("diverged 1 time" in r and "t = 12.0 s" in r for r in h["reasons"])
     assert any("gyro" in r and "rail" in r for r in h["reasons"])
+
+
+def test_rail_in_the_raw_data() -> None:
+    """A gyro reading pinned at ±4.366 rad/s for many samples is saturation; a peak reached once is not."""
+    rng = np.random.default_rng(2)
+    g = rng.normal(0, 1.0, size=(5000, 3))
+    assert assess(good(), raw={"gyro": g})["verdict"] == "ok"
+    g[100:300, 1] = 4.366
+    h = assess(good(), raw={"gyro": g})
+    assert h["verdict"] == "degraded" and h["checks"]["rail_samples"] == {"gyro": 200}
+    assert "y ±4.366" in h["reasons"][0]
+
+
+MARG = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "marg-set1"
+
+
+@pytest.mark.skipif(not (MARG / "tilt-sphere.csv").is_file(), reason="measured data ../shared/data absent")
+def test_issue_row_real_tilt_sphere_gyro_rail() -> None:
+    """The measured tilt-sphere session: `diagnose` found 187 gyro samples at the ±4.366 rad/s rail."""
+    from onlinecal.io import read_log
+
+    d = read_log(MARG / "tilt-sphere.csv")
+    h = assess(good(), raw={"gyro": d.gyro, "accel": d.acc})
+    assert h["checks"]["rail_samples"].get("gyro", 0) >= 187, h["checks"]
+    assert any("4.366" in r for r in h["reasons"])
 
 
 def test_undetermined_terms_are_named_not_degrading() -> None:

@@ -247,3 +247,13 @@ def test_issue_row_replay_tilt_sphere_is_not_trusted(tmp_path: Path) -> None:
     text = " | ".join(h["reasons"])
     assert "mag: mean NIS" in text and "rail" in text and "gate rejected" in text, text
     assert "health of the online calibration: failed" in r.stderr
+
+
+def test_diagnose_prints_estimated_parameters_and_gain() -> None:
+    """`diagnose` printed the verdict but not the estimated value: each significant finding now has an
+    `estimated:` line (its fitted parameters) and a `gain:` line."""
+    from onlinecal.cli import _fmt_params
+
+    assert _fmt_params({"sensor": "gyro", "coeff": [2e-4, -1e-4, 0.0], "seconds": 0.05}) == \
+        "sensor=gyro, coeff=[ 0.0002, -0.0001,  0.    ], seconds=0.05"
+    assert _fmt_params({"T0": float("nan")}) == "T0=nan"

@@ -670,9 +670,13 @@ _EXAMPLES = {
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import textwrap
+
     fmt = argparse.RawDescriptionHelpFormatter
+    status = textwrap.fill(EXIT_STATUS_TEXT, 100)
+    csv = textwrap.fill(CSV_SCHEMA, 100)
     ap = _Parser(prog="onlinecal", description="Online IMU calibration (Zhang et al. 2014 + UKF)",
-                 epilog=EXIT_STATUS_TEXT + "\n" + CSV_SCHEMA, formatter_class=fmt)
+                 epilog=status + "\n\n" + csv, formatter_class=fmt)
     ap.add_argument("--version", action="version", version=f"onlinecal {__version__}")
     ap.add_argument("--quiet", "-q", action="store_true",
                     help="no progress bars (they are also off when stderr is not a terminal)")
@@ -680,7 +684,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     def command(name: str, help_: str) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_, description=help_, formatter_class=fmt,
-                           epilog=_EXAMPLES.get(name, "") + "\n\n" + EXIT_STATUS_TEXT)
+                           epilog=_EXAMPLES.get(name, "") + "\n\n" + status)
         _add_quiet(p)
         return p
 

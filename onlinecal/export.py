@@ -601,10 +601,9 @@ def write_parm(
       lines, then ``vehicle-id<TAB>component-id<TAB>NAME<TAB>VALUE<TAB>MAV_PARAM_TYPE`` (1, 1, type 9 =
       REAL32, 6 = INT32).
     """
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(render_parm(params, fmt, header, types))
-    tmp.replace(p)
+    from .files import atomic_write
+
+    atomic_write(path, render_parm(params, fmt, header, types))
 
 
 def render_parm(

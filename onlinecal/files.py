@@ -53,11 +53,12 @@ def dumps(obj: Any, indent: int | None = 2) -> str:
     return json.dumps(sanitize(obj), indent=indent, allow_nan=False, ensure_ascii=False)
 
 
-def atomic_write(path: str | Path, data: str | bytes) -> None:
+def atomic_write(path: str | Path, data: str | bytes, oserror: bool = False) -> None:
     """Write ``data`` to ``path`` atomically (temp file in the same directory, fsync, rename); ``-``: stdout.
 
     The temporary name is unique (``tempfile.mkstemp``), so two writers never share it, and it is removed
-    when the write fails. Raises :class:`OutputError` naming the path when it cannot be written.
+    when the write fails; the directory is fsynced after the rename. Raises :class:`OutputError` (a
+    ``ValueError``) naming the path when it cannot be written, or the ``OSError`` itself with ``oserror``.
     """
     if str(path) == STDOUT:
         if isinstance(data, bytes):
@@ -73,6 +74,8 @@ def atomic_write(path: str | Path, data: str | bytes) -> None:
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent if str(p.parent) else ".")
     except OSError as e:
+        if oserror:
+            raise
         raise OutputError(f"{path}: cannot write ({e.strerror or e})") from None
     try:
         with os.fdopen(fd, "wb") as fh:
@@ -81,14 +84,29 @@ def atomic_write(path: str | Path, data: str | bytes) -> None:
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o644)  # mkstemp makes 0600; an output file is an ordinary, readable file
         os.replace(tmp, p)
+        _fsync_dir(p.parent if str(p.parent) else Path("."))
     except BaseException as e:
         try:
             os.unlink(tmp)
         except OSError:
             pass
-        if isinstance(e, OSError):
+        if isinstance(e, OSError) and not oserror:
             raise OutputError(f"{path}: cannot write ({e.strerror or e})") from None
         raise
+
+
+def _fsync_dir(d: Path) -> None:
+    """Make the rename itself durable (not every platform/filesystem lets a directory be opened)."""
+    try:
+        fd = os.open(d, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def write_json(path: str | Path, obj: Any) -> None:

@@ -82,10 +82,14 @@ def _warn(msgs: Sequence[str]) -> None:
         print(f"warning: {m}", file=sys.stderr)
 
 
-def _check_out(path: str | None, option: str, *, directory: bool = False, exist_ok: bool = True) -> None:
-    """Refuse an output that cannot be written, before any work (one line naming option and path)."""
+def _check_out(path: str | None, option: str, *, directory: bool = False, exist_ok: bool = True,
+               dash: bool = True) -> None:
+    """Refuse an output that cannot be written, before any work (one line naming option and path).
+    ``dash``: ``-`` (stdout) is accepted (every JSON output); a trace or checkpoint needs a file."""
     from .files import OutputError, check_output_dir, check_output_file
 
+    if path == "-" and not dash:
+        raise UsageError(f"{option} -: this output cannot go to stdout; give a file name")
     try:
         if directory:
             check_output_dir(path, option)
@@ -272,7 +276,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
     if a.init not in ("batch", "none"):
         _load_cal(a.init)  # a bad --init file is refused before the logs are read
     _check_out(a.json, "--json")
-    _check_out(a.trace, "--trace")
+    _check_out(a.trace, "--trace", dash=False)
     _check_out(a.report, "--report", directory=True)
     report = _report_dir(a.report) if a.report else None
     with bar(len(a.logs), desc="read", unit="logs") as pb:
@@ -391,8 +395,8 @@ def cmd_run(a: argparse.Namespace) -> int:
         raise UsageError("--resume needs --checkpoint FILE")
     init = _load_cal(a.init) if a.init else None
     _check_out(a.json, "--json")
-    _check_out(a.trace, "--trace")
-    _check_out(a.checkpoint, "--checkpoint")
+    _check_out(a.trace, "--trace", dash=False)
+    _check_out(a.checkpoint, "--checkpoint", dash=False)
     from .apply_ext import check_live, live_transform
 
     try:

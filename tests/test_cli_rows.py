@@ -258,3 +258,10 @@ def test_diagnose_prints_estimated_parameters_and_gain() -> None:
     assert _fmt_params({"sensor": "gyro", "coeff": [2e-4, -1e-4, 0.0], "seconds": 0.05}) == \
         "sensor=gyro, coeff=[ 0.0002, -0.0001,  0.    ], seconds=0.05"
     assert _fmt_params({"T0": float("nan")}) == "T0=nan"
+
+
+@pytest.mark.parametrize("args", [["replay", "x.tlog", "--trace", "-"], ["replay", "x.tlog", "--report", "-"],
+                                  ["demo", "--out", "-"]])
+def test_dash_where_a_file_is_needed(tmp_path: Path, args: list[str]) -> None:
+    line = one_line(cli(*args, cwd=tmp_path))
+    assert "-" in line and not (tmp_path / "-").exists()

@@ -265,3 +265,13 @@ def test_diagnose_prints_estimated_parameters_and_gain() -> None:
 def test_dash_where_a_file_is_needed(tmp_path: Path, args: list[str]) -> None:
     line = one_line(cli(*args, cwd=tmp_path))
     assert "-" in line and not (tmp_path / "-").exists()
+
+
+@pytest.mark.parametrize("content", ["[1, 2]", "null", '{"schema": "onlinecal.live-checkpoint/1", "state": null}',
+                                     '{"schema": "onlinecal.live-checkpoint/1"', "\x00\x01"])
+def test_run_resume_from_a_damaged_checkpoint(tmp_path: Path, content: str) -> None:
+    ck = tmp_path / "run.ckpt"
+    ck.write_text(content)
+    line = one_line(cli("run", "--connect", "udpin:127.0.0.1:14998", "--checkpoint", str(ck), "--resume",
+                        "--duration", "2", timeout=60))
+    assert str(ck) in line and "checkpoint" in line, line

@@ -112,13 +112,13 @@ def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[
     for s, st in nis.items():
         if not isinstance(st, dict):  # "band", "events_total": figures, not a sensor
             continue
-        m, w = st.get("mean"), int(st.get("windows") or 0)
+        raw_m, w = st.get("mean"), int(st.get("windows") or 0)
         gate = _gate_check(s, st)
         if gate is not None:
             out.append(gate)
-        finite = isinstance(m, (int, float)) and math.isfinite(m)
-        if not finite or (w < NIS_MIN_WINDOWS and not (w >= 1 and m > NIS_FAILED * NIS_DOF)):
-            figs[s] = {"mean": float(m) if finite else None, "windows": w, "expected": NIS_DOF,
+        m = float(raw_m) if isinstance(raw_m, (int, float)) else math.nan
+        if not math.isfinite(m) or (w < NIS_MIN_WINDOWS and not (w >= 1 and m > NIS_FAILED * NIS_DOF)):
+            figs[s] = {"mean": m if math.isfinite(m) else None, "windows": w, "expected": NIS_DOF,
                        "status": "too few updates"}
             continue
         status = "ok"
@@ -131,7 +131,7 @@ def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[
             how = "the data scatter more than the model allows" if m > hi else "the noise is overstated"
             out.append(("degraded", f"{s}: mean NIS {m:.3g} outside [{lo:g}, {hi:g}] ({NIS_DOF} expected): {how}; "
                                     "its σ are not to be trusted"))
-        figs[s] = {"mean": float(m), "windows": w, "expected": NIS_DOF, "band": [lo, hi], "status": status}
+        figs[s] = {"mean": m, "windows": w, "expected": NIS_DOF, "band": [lo, hi], "status": status}
     return out, figs
 
 

@@ -80,14 +80,19 @@ def read_json(path: str | Path) -> Any:
         raise CalFileError(f"{path}: not a calibration JSON (invalid JSON: {e})") from None
 
 
-def _array(path: str, field: str, v: Any, shape: tuple[int, ...]) -> np.ndarray:
+def _array(path: str, field: str, v: Any, shape: tuple[int, ...], unknown_ok: bool = False) -> np.ndarray:
+    """``v`` as a float array of ``shape``, every entry finite (``unknown_ok``: a JSON null, an unknown σ
+    as strict JSON writes NaN, reads as NaN)."""
+    if unknown_ok and isinstance(v, list):
+        v = [(math.nan if x is None else [math.nan if y is None else y for y in x] if isinstance(x, list) else x)
+             for x in v]
     try:
         a = np.array(v, dtype=float)
     except (TypeError, ValueError, OverflowError):
         raise CalFileError(f"{path}: {field}: expected {_shape_words(shape)}, got {_short(v)}") from None
     if a.shape != shape:
         raise CalFileError(f"{path}: {field}: expected {_shape_words(shape)}, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.all(np.isfinite(a) | (unknown_ok & np.isnan(a))):
         raise CalFileError(f"{path}: {field}: holds a non-finite number")
     return a
 
@@ -135,7 +140,7 @@ def validate_sensor(path: str, s: str, d: Any) -> dict[str, Any]:
     for k, v in sig.items():
         if k not in SIGMA_KEYS:
             continue  # σ of a derived figure this version does not use: ignored, as the contract allows
-        a = _array(path, f"{s}.sigma.{k}", v, SIGMA_KEYS[k])
+        a = _array(path, f"{s}.sigma.{k}", v, SIGMA_KEYS[k], unknown_ok=True)
         if np.any(a < 0):
             raise CalFileError(f"{path}: {s}.sigma.{k}: negative σ")
         clean[k] = a.tolist()

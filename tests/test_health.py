@@ -327,3 +327,13 @@ def test_output_checks(tmp_path: Path) -> None:
     with pytest.raises(OutputError, match="not writable"):
         check_output_dir("/proc/x", "--report")
     check_output_dir(tmp_path / "a" / "b")
+
+
+def test_unknown_sigma_round_trips_as_null(tmp_path: Path) -> None:
+    """A σ the filter could not give (NaN) is written as null (strict JSON) and read back as unknown."""
+    cal = good(gyro=S(bias=(0.01, 0, 0), sigma={"bias": [1e-4, float("nan"), 1e-4]}))
+    p = tmp_path / "c.json"
+    cal.save(p)
+    assert "NaN" not in p.read_text() and json.loads(p.read_text())["gyro"]["sigma"]["bias"][1] is None
+    back = load_calibration(p)
+    assert np.isnan(back.gyro.sigma["bias"][1]) and back.gyro.sigma["bias"][0] == 1e-4

@@ -23,6 +23,18 @@ def cli(*args: str, timeout: float = 300, env: dict | None = None,
                           timeout=timeout, env=e, cwd=cwd)
 
 
+def in_process(capsys: pytest.CaptureFixture[str], *args: str) -> subprocess.CompletedProcess:
+    """The command line run by ``onlinecal.cli.main`` in this process (no interpreter start: the fast tier)."""
+    from onlinecal.cli import main
+
+    try:
+        rc = main(list(args))
+    except SystemExit as e:  # argparse's own refusals
+        rc = int(e.code or 0)
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(list(args), rc, out, err)
+
+
 def one_line(r: subprocess.CompletedProcess, code: int = 2) -> str:
     assert r.returncode == code, (r.returncode, r.stderr)
     assert "Traceback" not in r.stderr
@@ -79,8 +91,10 @@ def test_unwritable_output_refused_quickly(session: dict[str, Path], args: list[
     (["compare", "a.json", "b.json", "--tol", "-1"], "--tol"),
     (["replay", "x.tlog", "--jobs", "0"], "--jobs"),
 ])
-def test_invalid_numbers_rejected_with_one_line(tmp_path: Path, args: list[str], option: str) -> None:
-    r = cli(*args, cwd=tmp_path)
+def test_invalid_numbers_rejected_with_one_line(tmp_path: Path, args: list[str], option: str,
+                                                capsys: pytest.CaptureFixture[str], monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    r = in_process(capsys, *args)
     line = one_line(r)
     assert option in line and "must be" in line, line
     assert not (tmp_path / "x.tlog").exists()
@@ -99,8 +113,8 @@ JUNK = {"list": "[1, 2]", "string": '"x"', "null": "null", "nested": '{"schema":
 
 @pytest.mark.parametrize("kind", sorted(JUNK))
 @pytest.mark.parametrize("cmd", ["export", "compare", "replay", "replay-jobs", "run"])
-def test_damaged_calibration_one_line_naming_the_file(session: dict[str, Path], tmp_path: Path,
-                                                       kind: str, cmd: str) -> None:
+def test_damaged_calibration_one_line_naming_the_file(session: dict[str, Path], tmp_path: Path, kind: str,
+                                                       cmd: str, capsys: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / f"{kind}.json"
     bad.write_text(JUNK[kind])
     args = {"export": ["export", str(bad), "--format", "ardupilot", "--out", str(tmp_path / "o.parm")],
@@ -108,7 +122,7 @@ def test_damaged_calibration_one_line_naming_the_file(session: dict[str, Path], 
             "replay": ["replay", str(session["log"]), "--init", str(bad)],
             "replay-jobs": ["replay", str(session["log"]), "--init", str(bad), "--jobs", "1"],
             "run": ["run", "--connect", "udpin:127.0.0.1:1", "--init", str(bad), "--duration", "1"]}[cmd]
-    line = one_line(cli(*args, timeout=60))
+    line = one_line(in_process(capsys, *args))
     assert str(bad) in line, line
 
 
@@ -236,7 +250,6 @@ def test_fifo_log_refused_at_once(tmp_path: Path) -> None:
 MARG = REPO.parent / "shared" / "data" / "marg-set1"
 
 
-@pytest.mark.slow
 @pytest.mark.skipif(not (MARG / "tilt-sphere.csv").is_file(), reason="measured data ../shared/data absent")
 def test_issue_row_replay_tilt_sphere_is_not_trusted(tmp_path: Path) -> None:
     """`replay marg-set1/tilt-sphere.csv` printed gyro.scale.y 0.602 with no warning and exit 0, its JSON

@@ -1,21 +1,42 @@
 """The ``onlinecal`` command (contract: shared/spec/contract.md).
 
-Every command turns unusable input into one line on stderr and exit status 2, never a traceback.
+Every command turns unusable input into one line on stderr and exit status 2, never a traceback. Outputs
+are checked before the work starts, written atomically (:mod:`onlinecal.files`), strict JSON, and ``-``
+means stdout for every JSON output (the human-readable text then goes to stderr).
+
+Exit status (also in ``onlinecal --help`` and the README): 0 the result is healthy; 1 ``compare --tol``
+found a difference beyond the tolerance, or ``run --apply`` could not confirm every parameter; 2 unusable
+input (a log, a calibration file, an option, an output path); 3 an optional component is missing; 4 the
+result is *degraded* and 5 it *failed* its health check (:mod:`onlinecal.health`; the reasons are printed
+and stored under ``"health"`` in the JSON; ``export`` returns 4 when it withheld a parameter); 70 an
+internal error (a bug, said in one line); 130 interrupted.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from . import __version__
 
+EXIT_DIFFER = 1
 EXIT_INPUT = 2
 EXIT_UNAVAILABLE = 3
+EXIT_DEGRADED = 4
+EXIT_FAILED = 5
+EXIT_INTERNAL = 70  # EX_SOFTWARE: a bug, said in one line (never expected; the fuzz test asserts it)
+EXIT_STATUS_TEXT = (
+    "exit status: 0 healthy result; 1 compare --tol beyond tolerance, or run --apply not confirmed; "
+    "2 unusable input (log, calibration file, option, output path); 3 optional component missing; "
+    "4 result degraded (export: a parameter withheld); 5 result failed its health check (reasons printed and "
+    "in the JSON's \"health\"); 70 internal error (a bug); 130 interrupted"
+)
 
 
 class UsageError(Exception):
@@ -26,30 +47,106 @@ class Unavailable(Exception):
     """A command or option this version does not have yet; says so instead of a made-up answer."""
 
 
-def _scales(a: argparse.Namespace) -> dict[str, float | None]:
+def _scales(a: argparse.Namespace) -> dict[str, Any]:
     return {"acc_scale": a.acc_scale, "gyro_scale": a.gyro_scale, "mag_scale": a.mag_scale}
 
 
 def _read_logs(paths: Sequence[str], a: argparse.Namespace) -> list[Any]:
+    import stat
+
     from .io import read_log
 
+    for p in paths:
+        try:
+            mode = os.stat(p).st_mode
+        except OSError:
+            continue  # missing: the reader's own one-line message
+        if stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode) or stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+            # a FIFO or device never ends: reading it would hang instead of refusing it
+            raise UsageError(f"{p}: not a regular file (a FIFO, socket or device); give a log file")
     return [read_log(p, **_scales(a)) for p in paths]
 
 
 def _load_cal(path: str) -> Any:
-    from .model import Calibration
+    """A validated calibration (or simulator truth) file; one line naming the file and field otherwise."""
+    from .calfile import CalFileError, load_calibration
 
     try:
-        return Calibration.load(path)
-    except FileNotFoundError as e:
-        raise UsageError(f"{path}: no such file") from e
-    except (ValueError, KeyError, TypeError) as e:
-        raise UsageError(f"{path}: not a calibration JSON ({e})") from e
+        return load_calibration(path)
+    except CalFileError as e:
+        raise UsageError(str(e)) from None
 
 
 def _warn(msgs: Sequence[str]) -> None:
     for m in msgs:
         print(f"warning: {m}", file=sys.stderr)
+
+
+def _check_out(path: str | None, option: str, *, directory: bool = False, exist_ok: bool = True,
+               dash: bool = True) -> None:
+    """Refuse an output that cannot be written, before any work (one line naming option and path).
+    ``dash``: ``-`` (stdout) is accepted (every JSON output); a trace or checkpoint needs a file."""
+    from .files import OutputError, check_output_dir, check_output_file
+
+    if path == "-" and not dash:
+        raise UsageError(f"{option} -: this output cannot go to stdout; give a file name")
+    try:
+        if directory:
+            check_output_dir(path, option)
+        else:
+            check_output_file(path, option, exist_ok=exist_ok)
+    except OutputError as e:
+        raise UsageError(str(e)) from None
+
+
+def _human(json_path: str | None) -> Any:
+    """Where the human-readable text goes: stderr when the JSON goes to stdout (``--json -``)."""
+    return sys.stderr if json_path == "-" else sys.stdout
+
+
+def _save_result(cal: Any, health: dict[str, Any] | None, path: str) -> None:
+    """Write ``cal`` as strict JSON with its health verdict (``meta.health`` and a top-level ``health``)."""
+    from .files import OutputError, write_json
+
+    if health is not None:
+        cal = cal.replace(meta={**cal.meta, "health": health})
+    obj = cal.to_dict()
+    if health is not None:
+        obj["health"] = health
+    try:
+        write_json(path, obj)
+    except OutputError as e:
+        raise UsageError(str(e)) from None
+
+
+def _show_health(health: dict[str, Any], what: str) -> int:
+    """Print the verdict (stderr: it is a diagnostic) and return its exit status."""
+    from .health import exit_status
+
+    print(f"health of the {what}: {health['verdict']}", file=sys.stderr)
+    for r in health.get("reasons", []):
+        print(f"  - {r}", file=sys.stderr)
+    und = health.get("checks", {}).get("undetermined") or []
+    if und:
+        print(f"  note: not determined by the data (start value kept, σ wide): {', '.join(und)}", file=sys.stderr)
+    return exit_status(health)
+
+
+def _raw(logs: Sequence[Any] | None) -> dict[str, Any] | None:
+    """Raw gyro and accel samples of the logs, for the health verdict's rail (saturation) check."""
+    import numpy as np
+
+    logs = [d for d in (logs or []) if getattr(d, "n_imu", 0)]
+    if not logs:
+        return None
+    return {"gyro": np.concatenate([d.gyro for d in logs]), "accel": np.concatenate([d.acc for d in logs])}
+
+
+def _mag_raw(logs: Sequence[Any]) -> Any:
+    import numpy as np
+
+    mags = [d.mag for d in logs if getattr(d, "n_mag", 0)]
+    return np.concatenate(mags) if mags else None
 
 
 # -- commands ---------------------------------------------------------------------------------------
@@ -59,17 +156,24 @@ def cmd_simulate(a: argparse.Namespace) -> int:
     from .sim import simulate
     from .sim.effects import EffectError, check_combination, parse_effect
 
+    out = Path(a.out)
+    if out.suffix not in (".tlog", ".csv", ".bin"):
+        raise UsageError(f"{out}: extension must be .tlog, .csv or .bin")
+    _check_out(a.out, "--out")
+    _check_out(str(out) + ".truth.json", "--out")
     try:
         effects = [parse_effect(e) for e in a.effect]
         check_combination(effects)
         sim = simulate(a.profile, a.seed, a.duration, a.rate, a.mag_rate, effects=effects)
     except EffectError as e:  # the message names the spec and what is wrong with it
         raise UsageError(f"--effect: {e}") from e
-    out = Path(a.out)
-    if out.suffix not in (".tlog", ".csv", ".bin"):
-        raise UsageError(f"{out}: extension must be .tlog, .csv or .bin")
-    write_log(out, sim.data)
-    sim.truth.save(str(out) + ".truth.json")
+    if sim.data.n_imu == 0:
+        raise UsageError(f"--duration {a.duration:g} at --rate {a.rate:g} Hz gives no IMU sample")
+    try:
+        write_log(out, sim.data)
+        sim.truth.save(str(out) + ".truth.json")
+    except OSError as e:
+        raise UsageError(f"{e.filename or out}: cannot write ({e.strerror or e})") from None
     print(f"wrote {out} ({sim.data.n_imu} IMU, {sim.data.n_mag} mag samples, {sim.data.duration:.1f} s) "
           f"and {out}.truth.json")
     return 0
@@ -86,9 +190,12 @@ def _report_dir(path: str) -> Path:
 
 def cmd_batch(a: argparse.Namespace) -> int:
     from .batch import run_batch
+    from .health import assess
     from .progress import stages
     from .report import truth_table, write_report
 
+    _check_out(a.json, "--json")
+    _check_out(a.report, "--report", directory=True)
     report = _report_dir(a.report) if a.report else None
     steps = [f"read {Path(p).name}" for p in a.logs] + ["batch pipeline"] + (["report"] * 5 if report else [])
     with stages(steps, desc="batch") as st:
@@ -102,19 +209,23 @@ def cmd_batch(a: argparse.Namespace) -> int:
         dt = time.perf_counter() - t0
         written = write_report(report, logs, "batch", batch=res, g=a.gravity, progress=st) if report else []
     _warn(res.warnings)
-    print(truth_table(None, res.calibration, None))
-    print(f"batch pipeline: {sum(d.n_imu for d in logs)} IMU samples in {dt:.2f} s")
-    return _wrote(res.calibration, a.json, report, written)
+    health = assess(res.calibration, mag_raw=_mag_raw(logs), raw=_raw(logs))
+    out = _human(a.json)
+    print(truth_table(None, res.calibration, None), file=out)
+    print(f"batch pipeline: {sum(d.n_imu for d in logs)} IMU samples in {dt:.2f} s", file=out)
+    _wrote(res.calibration, health, a.json, report, written)
+    return _show_health(health, "batch calibration")
 
 
-def _wrote(cal: Any, json_path: str | None, report: Any, written: list[str]) -> int:
-    """Save ``cal`` to ``--json`` if asked, name the files written, exit 0 (batch and replay)."""
+def _wrote(cal: Any, health: dict[str, Any] | None, json_path: str | None, report: Any, written: list[str]) -> None:
+    """Save ``cal`` (with its health) to ``--json`` if asked and name the files written (batch and replay)."""
+    out = _human(json_path)
     if json_path:
-        cal.save(json_path)
-        print(f"wrote {json_path}")
+        _save_result(cal, health, json_path)
+        if json_path != "-":
+            print(f"wrote {json_path}", file=out)
     if report:
-        print(f"wrote {report}/ ({', '.join(written)})")
-    return 0
+        print(f"wrote {report}/ ({', '.join(written)})", file=out)
 
 
 def _initial(a: argparse.Namespace, logs: list[Any]) -> tuple[Any, Any]:
@@ -123,8 +234,10 @@ def _initial(a: argparse.Namespace, logs: list[Any]) -> tuple[Any, Any]:
         return None, None
     if a.init == "batch":
         from .batch import run_batch
+        from .progress import spinner
 
-        res = run_batch(logs)
+        with spinner("batch (the filter's start)"):
+            res = run_batch(logs)
         _warn(res.warnings)
         return res.calibration, res
     return _load_cal(a.init), None
@@ -140,6 +253,15 @@ def _ukf() -> Any:
     return ukf
 
 
+def online_health(res: Any, logs: Sequence[Any] | None = None) -> dict[str, Any]:
+    """Health of an online result (replay, run, fleet): NIS, events, observability, ranges, mag coverage."""
+    from .health import assess
+
+    return assess(res.calibration, events=getattr(res, "events", None), nis=getattr(res, "nis", None),
+                  observability=getattr(res, "observability", None),
+                  mag_raw=_mag_raw(logs) if logs else None, raw=_raw(logs))
+
+
 def cmd_replay(a: argparse.Namespace) -> int:
     if a.jobs is not None or a.executor != "process" or a.scheduler:
         return _replay_fleet(a)
@@ -151,6 +273,11 @@ def cmd_replay(a: argparse.Namespace) -> int:
     from .progress import bar
     from .report import truth_table, write_report
 
+    if a.init not in ("batch", "none"):
+        _load_cal(a.init)  # a bad --init file is refused before the logs are read
+    _check_out(a.json, "--json")
+    _check_out(a.trace, "--trace", dash=False)
+    _check_out(a.report, "--report", directory=True)
     report = _report_dir(a.report) if a.report else None
     with bar(len(a.logs), desc="read", unit="logs") as pb:
         logs = []
@@ -172,7 +299,10 @@ def cmd_replay(a: argparse.Namespace) -> int:
         pb.set(i, note=f"log {k + 1}/{len(logs)} {Path(logs[k].source).name}" if len(logs) > 1 else None)
 
     with bar(sum(d.n_imu for d in logs), desc="replay", unit="samples") as pb:
-        res = replay_chunked(logs, init, trace_path=a.trace, on_progress=show)
+        try:
+            res = replay_chunked(logs, init, trace_path=a.trace, on_progress=show)
+        except OSError as e:  # the trace file went away under us
+            raise UsageError(f"{e.filename or a.trace}: cannot write ({e.strerror or e})") from None
     _warn(getattr(res, "warnings", []))
     if ext_notes and init is not None and not res.calibration.extensions:
         # the filter saw corrected data: its calibration holds together with the extensions it was given
@@ -184,15 +314,18 @@ def cmd_replay(a: argparse.Namespace) -> int:
         with stages(["report"] * 9, desc="report") as st:
             written = write_report(report, logs, "replay", batch=batch, online=res,
                                    init=None if batch is not None else init, progress=st)
-    print(truth_table(None, init, res.calibration))
-    return _wrote(res.calibration, a.json, report, written)
+    health = online_health(res, logs)
+    print(truth_table(None, init, res.calibration, labels=("init" if batch is None else "batch", "online")),
+          file=_human(a.json))
+    _wrote(res.calibration, health, a.json, report, written)
+    return _show_health(health, "online calibration")
 
 
 def _replay_fleet(a: argparse.Namespace) -> int:
     """``replay --jobs N`` / ``--executor dask``: every log an independent unit (see onlinecal.fleet)."""
-    import json
-
+    from .files import dumps
     from .fleet import DaskMissing, SchedulerUnreachable, fleet_summary, require_dask, run_fleet, summary_table
+    from .health import EXIT_STATUS, combine
     from .progress import bar
 
     if a.executor == "dask":
@@ -206,17 +339,18 @@ def _replay_fleet(a: argparse.Namespace) -> int:
     if a.scheduler and a.executor != "dask":
         raise UsageError("--scheduler is the address of a dask scheduler: use it with --executor dask")
     init: Any = a.init if a.init in ("batch", "none") else _load_cal(a.init).to_dict()
+    _check_out(a.json, "--json")
     jobs = a.jobs if a.jobs is not None else 1
     to_stdout = a.json == "-"
-    try:
-        fh = sys.stdout if to_stdout else (open(a.json, "w") if a.json else None)
-    except OSError as e:
-        raise UsageError(f"{a.json}: cannot write ({e.strerror or e})") from e
+    lines: list[str] = []
 
     def on_record(rec: dict[str, Any]) -> None:
-        if fh is not None:
-            fh.write(json.dumps(rec, allow_nan=False) + "\n")
-            fh.flush()
+        line = dumps(rec, indent=None)
+        if to_stdout:
+            sys.stdout.write(line + "\n")
+            sys.stdout.flush()
+        else:
+            lines.append(line)
 
     try:
         with bar(len(a.logs), desc=f"replay ×{jobs} {a.executor}", unit="logs") as pb:
@@ -227,207 +361,370 @@ def _replay_fleet(a: argparse.Namespace) -> int:
     except SchedulerUnreachable as e:
         raise UsageError(str(e)) from e
     finally:
-        if fh is not None and not to_stdout:
-            fh.close()
+        if a.json and not to_stdout and lines:
+            from .files import OutputError, atomic_write
+
+            try:
+                atomic_write(a.json, "\n".join(lines) + "\n")
+            except OutputError as e:
+                raise UsageError(str(e)) from None
     print(summary_table(fleet_summary(recs)), file=sys.stderr if to_stdout else sys.stdout)
     if a.json and not to_stdout:
         print(f"wrote {a.json} ({len(recs)} lines)")
-    bad = [r for r in recs if not r["ok"]]
-    for r in bad:
+    errors = [r for r in recs if r.get("error")]
+    for r in errors:
         print(f"onlinecal replay: {r['error']}", file=sys.stderr)
-    return EXIT_INPUT if bad else 0
+    for r in recs:
+        h = r.get("health")
+        if not r.get("error") and h and h.get("verdict") != "ok":
+            print(f"onlinecal replay: {r['log']}: health {h['verdict']}: {'; '.join(h.get('reasons', []))}",
+                  file=sys.stderr)
+    if errors:
+        return EXIT_INPUT
+    return EXIT_STATUS[combine(r.get("health") for r in recs)]
 
 
 def cmd_run(a: argparse.Namespace) -> int:
     """The UKF on a live link (onlinecal.ukf.live_run): result JSON at the end, checkpoints, --apply.
-    Exit 0; 1 when --apply could not confirm every parameter; 2 for unusable input."""
+    Exit 0 (or 4/5 by the result's health); 1 when --apply could not confirm every parameter; 2 for
+    unusable input."""
     ukf = _ukf()
     if not hasattr(ukf, "run_live"):
         raise Unavailable("live runs are not available in this build")
     if a.resume and not a.checkpoint:
         raise UsageError("--resume needs --checkpoint FILE")
-    for opt, v in (("--checkpoint-every", a.checkpoint_every), ("--rate", a.rate)):
-        if not v >= 0 or (opt == "--checkpoint-every" and v == 0):
-            raise UsageError(f"{opt}: must be a positive number, got {v:g}")
-    if a.duration is not None and not a.duration > 0:
-        raise UsageError(f"--duration: must be a positive number of seconds, got {a.duration:g}")
     init = _load_cal(a.init) if a.init else None
+    _check_out(a.json, "--json")
+    _check_out(a.trace, "--trace", dash=False)
+    _check_out(a.checkpoint, "--checkpoint", dash=False)
     from .apply_ext import check_live, live_transform
 
     try:
         _warn(check_live(init))
     except ValueError as e:
         raise UsageError(f"--init {a.init}: {e}") from None
+    json_file = None if a.json == "-" else a.json
     try:
-        res = ukf.run_live(a.connect, init, duration_s=a.duration, json_out=a.json, trace_out=a.trace,
+        res = ukf.run_live(a.connect, init, duration_s=a.duration, json_out=json_file, trace_out=a.trace,
                            checkpoint=a.checkpoint, checkpoint_every_s=a.checkpoint_every, resume=a.resume,
                            rate_hz=a.rate, apply=a.apply, transform=live_transform(init), **_scales(a))
-        if init is not None and init.extensions and not res.calibration.extensions:
-            res.calibration = res.calibration.replace(extensions=init.extensions)
-            if a.json:
-                res.calibration.save(a.json)
     except ImportError as e:
         raise Unavailable(str(e)) from e
     except OSError as e:  # the JSON, trace or checkpoint file cannot be written
         raise UsageError(f"{e.filename or '?'}: cannot write ({e.strerror or e})") from e
+    if init is not None and init.extensions and not res.calibration.extensions:
+        res.calibration = res.calibration.replace(extensions=init.extensions)
+    health = online_health(res)
+    if a.json:
+        _save_result(res.calibration, health, a.json)
     from .report import truth_table
 
+    out = _human(a.json)
     _warn(res.warnings)
-    print(truth_table(None, init, res.calibration))
+    print(truth_table(None, init, res.calibration, labels=("init", "online")), file=out)
     ln = res.link
     print(f"link: received {ln['received']}, lost {ln['lost']}, duplicates {ln['duplicates']}, "
           f"reordered {ln['reordered']}, late {ln['dropped_late']}, reconnects {ln['reconnects']}, "
-          f"resumes {ln['resumes']}; ended: {res.stop_reason}")
+          f"resumes {ln['resumes']}; ended: {res.stop_reason}", file=out)
     if res.missing_motion:
-        print("still needed: " + "; ".join(res.missing_motion))
-    if a.json:
-        print(f"wrote {a.json}")
+        print("still needed: " + "; ".join(res.missing_motion), file=out)
+    if a.json and a.json != "-":
+        print(f"wrote {a.json}", file=out)
+    status = _show_health(health, "online calibration")
     if res.apply_error:
         print(f"onlinecal run: --apply: {res.apply_error}; nothing was set", file=sys.stderr)
-        return 1
+        return EXIT_DIFFER
     if res.applied is not None:
         bad = res.apply_failed
         print(f"applied {len(res.applied) - len(bad)} of {len(res.applied)} {res.apply_format} parameters "
-              "(each confirmed by the vehicle's PARAM_VALUE)")
+              "(each confirmed by the vehicle's PARAM_VALUE)", file=out)
         for n in bad:
             print(f"onlinecal run: {n} not confirmed: {res.applied[n]['why']}", file=sys.stderr)
         if bad:
-            return 1
-    return 0
+            return EXIT_DIFFER
+    return status
 
 
 def cmd_compare(a: argparse.Namespace) -> int:
-    from .report import compare_text
+    from .report import compare, compare_text
 
-    print(compare_text(_load_cal(a.a), _load_cal(a.b)))
+    ca, cb = _load_cal(a.a), _load_cal(a.b)
+    rows = compare(ca, cb, a.tol, a.abs_tol)
+    print(compare_text(ca, cb, rows=rows))
+    if a.tol is None and a.abs_tol is None:
+        return 0
+    beyond = [r for r in rows if r.get("beyond")]
+    if beyond:
+        print(f"onlinecal compare: {len(beyond)} parameter(s) differ beyond the tolerance: "
+              + ", ".join(f"{r['sensor']}.{r['param']}.{r['axis']}" for r in beyond[:8])
+              + (" …" if len(beyond) > 8 else ""), file=sys.stderr)
+        return EXIT_DIFFER
     return 0
 
 
 def cmd_demo(a: argparse.Namespace) -> int:
     from .demo import run_demo
 
+    _check_out(a.out, "--out", directory=True)
     return run_demo(Path(a.out), a.seed)
 
 
 def cmd_diagnose(a: argparse.Namespace) -> int:
     from .diagnose import diagnose
+    from .health import assess
+    from .progress import spinner
 
+    _check_out(a.json, "--json")
+    _check_out(a.report, "--report", directory=True)
+    out = _human(a.json)
     logs = _read_logs(a.logs, a)
-    diag = diagnose(logs, g=a.gravity, seed=a.seed)
-    print(f"verdict: {diag.verdict}")
+    with spinner("diagnose (batch, detectors, re-simulation, UKF)"):
+        diag = diagnose(logs, g=a.gravity, seed=a.seed)
+    print(f"verdict: {diag.verdict}", file=out)
     for f in diag.findings:
-        if f.significant:
-            print(f"  {f.effect} ({f.sensor}{'/' + f.axis if f.axis else ''}): score {f.score:.1f} nats — {f.evidence}")
+        if not f.significant:
+            continue
+        print(f"  {f.effect} ({f.sensor}{'/' + f.axis if f.axis else ''}): score {f.score:.1f} nats — {f.evidence}",
+              file=out)
+        params = _fmt_params(f.parameters)
+        if params:
+            print(f"    estimated: {params}", file=out)
+        g = f.gain or {}
+        gain = [f"held-out RMS {g['heldout_rms_before']:.4g} → {g['heldout_rms_after']:.4g}"
+                if _finite(g.get("heldout_rms_before")) and _finite(g.get("heldout_rms_after")) else "",
+                f"log-likelihood gain {g['loglik_gain']:.1f} nats" if _finite(g.get("loglik_gain")) else "",
+                f"ΔBIC {g['bic_delta']:.1f}" if _finite(g.get("bic_delta")) else "",
+                f"UKF NIS {g['ukf_nis_before']:.3g} → {g['ukf_nis_after']:.3g}"
+                if _finite(g.get("ukf_nis_before")) and _finite(g.get("ukf_nis_after")) else ""]
+        if any(gain):
+            print(f"    gain: {', '.join(x for x in gain if x)}", file=out)
     for u in diag.untestable:
-        print(f"  not testable: {u}")
+        print(f"  not testable: {u}", file=out)
     ub, ua = diag.baseline.get("ukf") or {}, diag.ukf_extended or {}
+    nis: dict[str, Any] = {}
     if "nis_mean" in ub:
         print(f"  UKF NIS (window mean, expected 3): paper model {ub['nis_mean']:.3g}"
-              + (f", extended {ua['nis_mean']:.3g}" if "nis_mean" in ua else ""))
+              + (f", extended {ua['nis_mean']:.3g}" if "nis_mean" in ua else ""), file=out)
+        best = ua if "nis_mean" in ua else ub
+        nis = {"ukf (the model as diagnosed)": {"mean": best["nis_mean"], "windows": 99}}
     elif "error" in ub:
-        print(f"  UKF stage: {ub['error']}")
-    print(f"diagnose: {sum(d.n_imu for d in logs)} IMU samples in {diag.timing.get('total', 0):.1f} s")
+        print(f"  UKF stage: {ub['error']}", file=out)
+    print(f"diagnose: {sum(d.n_imu for d in logs)} IMU samples in {diag.timing.get('total', 0):.1f} s", file=out)
+    health = assess(diag.calibration, nis=nis, events=[], mag_raw=_mag_raw(logs), raw=_raw(logs))
     if a.json:
-        diag.save(a.json)
-        print(f"wrote {a.json}")
+        from .files import OutputError, write_json
+
+        try:
+            write_json(a.json, {**diag.to_dict(), "health": health})
+        except OutputError as e:
+            raise UsageError(str(e)) from None
+        if a.json != "-":
+            print(f"wrote {a.json}", file=out)
     if a.report:
         from .diagnose.report import write_report
 
         path = write_report(diag, Path(a.report))
-        print(f"wrote {path}")
-    return 0
+        print(f"wrote {path}", file=out)
+    return _show_health(health, "diagnosed calibration")
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def _fmt_params(p: dict[str, Any]) -> str:
+    """A finding's fitted parameters as ``key=value`` (lists rounded to 4 significant digits)."""
+    import numpy as np
+
+    out = []
+    for k, v in (p or {}).items():
+        if isinstance(v, (list, tuple, np.ndarray)):
+            try:
+                arr = np.asarray(v, float)
+                out.append(f"{k}=" + np.array2string(arr, precision=4, separator=", "))
+                continue
+            except (TypeError, ValueError):
+                pass
+        out.append(f"{k}={v:.4g}" if _finite(v) else f"{k}={v}")
+    return ", ".join(out)
 
 
 def cmd_export(a: argparse.Namespace) -> int:
-    import json
+    from .calfile import CalFileError, load_onboard_params
+    from .export import ExportError, export_calibration, header_lines, render_parm
+    from .files import OutputError, atomic_write, dumps
 
-    from .export import ExportError, export_calibration, header_lines, render_parm, write_parm
-
+    cal = _load_cal(a.cal)
+    onboard = None
+    if a.onboard:
+        try:
+            onboard = load_onboard_params(a.onboard)
+        except CalFileError as e:
+            raise UsageError(str(e)) from None
+    out = a.out if a.out else str(Path(a.cal).with_suffix(".parm" if a.format == "ardupilot" else ".params"))
+    side = None if out == "-" else out + ".export.json"
+    _check_out(out, "--out")
+    _check_out(side, "--out")
+    health = cal.meta.get("health") if isinstance(cal.meta.get("health"), dict) else None
     try:
-        cal = _load_cal(a.cal)
-    except OSError as e:
-        raise UsageError(f"{a.cal}: cannot read ({e.strerror or e})") from e
-    try:
-        exp = export_calibration(cal, a.format, a.mag_unit)
+        exp = export_calibration(cal, a.format, a.mag_unit, onboard=onboard, force=a.force, health=health)
     except ExportError as e:
         raise UsageError(f"{a.cal}: {e}") from e
     header = header_lines(exp, Path(a.cal).name)
-    if a.out == "-":
-        sys.stdout.write(render_parm(exp.params, exp.fmt, header, exp.types))
-        _warn(exp.warnings)
-        return 0
-    out = Path(a.out) if a.out else Path(a.cal).with_suffix(".parm" if a.format == "ardupilot" else ".params")
-    side = out.with_name(out.name + ".export.json")
     try:
-        write_parm(exp.params, out, exp.fmt, header, exp.types)
-        side.write_text(json.dumps(exp.report(), indent=2) + "\n")
-    except OSError as e:
-        raise UsageError(f"{out}: cannot write ({e.strerror or e})") from e
+        atomic_write(out, render_parm(exp.params, exp.fmt, header, exp.types))
+        if side is not None:
+            atomic_write(side, dumps(exp.report()) + "\n")
+    except OutputError as e:
+        raise UsageError(str(e)) from None
     _warn(exp.warnings)
-    print(f"wrote {out} ({len(exp.params)} parameters) and {side}")
-    return 0
+    for name, why in exp.withheld.items():
+        print(f"onlinecal export: {name} not written: {why}", file=sys.stderr)
+    if out != "-":
+        print(f"wrote {out} ({len(exp.params)} parameters"
+              + (f", {len(exp.withheld)} withheld" if exp.withheld else "") + f") and {side}")
+    if not exp.params:
+        print("onlinecal export: no parameter is supported by the calibration's σ and health "
+              "(--force writes them anyway)", file=sys.stderr)
+        return EXIT_DEGRADED
+    return EXIT_DEGRADED if exp.withheld else 0
 
 
 # -- parser -----------------------------------------------------------------------------------------
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``onlinecal simulate: --rate: must be ...``), exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_INPUT, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def _number(kind: str, lo: float | None = None, lo_open: bool = True, integer: bool = False) -> Any:
+    """An argparse type: a finite number (int when ``integer``) above ``lo`` (open or closed)."""
+    def parse(s: str) -> float | int:
+        try:
+            v: float | int = int(s) if integer else float(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {kind}, not {s!r}") from None
+        if not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)):
+            raise argparse.ArgumentTypeError(f"must be {kind}, not {s!r}")
+        return v
+    parse.__name__ = kind  # argparse names the type in its messages
+    return parse
+
+
+_POS = _number("a positive number", 0.0)
+_NONNEG = _number("a number ≥ 0", 0.0, lo_open=False)
+_SEED = _number("an integer ≥ 0", 0, lo_open=False, integer=True)
+_POS_INT = _number("a positive integer", 0, integer=True)
+
+
+def _scale_factor(s: str) -> float:
+    v = _number("a finite non-zero number")(s)
+    if v == 0:
+        raise argparse.ArgumentTypeError(f"must be a finite non-zero number, not {s!r}")
+    return float(v)
+
+
+def _positive_int(s: str) -> int:
+    return int(_POS_INT(s))
+
+
 def _add_scales(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--acc-scale", type=float, default=None, help="multiplier to m/s^2 (default: per format)")
-    p.add_argument("--gyro-scale", type=float, default=None, help="multiplier to rad/s (default: per format)")
-    p.add_argument("--mag-scale", type=float, default=None, help="multiplier for mag (default: per format)")
+    p.add_argument("--acc-scale", type=_scale_factor, default=None, metavar="K",
+                   help="multiplier from the log's accelerometer unit to m/s^2 (default: per format)")
+    p.add_argument("--gyro-scale", type=_scale_factor, default=None, metavar="K",
+                   help="multiplier from the log's gyro unit to rad/s (default: per format)")
+    p.add_argument("--mag-scale", type=_scale_factor, default=None, metavar="K",
+                   help="multiplier for the magnetometer (default: per format; any fixed unit works)")
 
 
 def _add_quiet(p: argparse.ArgumentParser) -> None:
     # SUPPRESS: given after the command it sets a.quiet; absent, the global flag's value stays
-    p.add_argument("--quiet", "-q", action="store_true", default=argparse.SUPPRESS, help="no progress bars")
+    p.add_argument("--quiet", "-q", action="store_true", default=argparse.SUPPRESS,
+                   help="no progress bars (also accepted before the command)")
 
 
-def _positive_int(s: str) -> int:
-    try:
-        n = int(s)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, not {s!r}")
-    return n
+def _add_json(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--json", default=None, metavar="OUT",
+                   help=f"write {what} as strict JSON, with its \"health\" verdict ('-': stdout, the table "
+                        "then goes to stderr)")
+
+
+CSV_SCHEMA = ("CSV logs: header time_s,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z,temp_c "
+              "(s, rad/s, m/s^2, any fixed mag unit, degC); empty cells where a sensor has no sample in that row.")
+
+_EXAMPLES = {
+    "demo": "example: onlinecal demo --out /tmp/demo --seed 3",
+    "simulate": "examples: onlinecal simulate --out s.tlog --seed 1\n"
+                "          onlinecal simulate --out f.csv --profile flight --duration 120 --rate 200 "
+                "--effect time_offset:sensor=mag,seconds=0.05",
+    "batch": "examples: onlinecal batch session.tlog --json cal.json --report rep/\n"
+             "          onlinecal batch statics.csv turns.csv --json - | jq .health",
+    "replay": "examples: onlinecal replay flight.bin --init cal.json --json online.json --trace t.csv\n"
+              "          onlinecal replay logs/*.tlog --jobs 4 --json fleet.jsonl",
+    "run": "example: onlinecal run --connect udpin:0.0.0.0:14550 --duration 300 --json live.json "
+           "--checkpoint run.ckpt",
+    "compare": "examples: onlinecal compare batch.json online.json\n"
+               "          onlinecal compare session.tlog.truth.json batch.json --tol 5   # exit 1 beyond 5 sigma",
+    "diagnose": "example: onlinecal diagnose session.csv --json diag.json --report diag/",
+    "export": "examples: onlinecal export cal.json --format ardupilot --out cal.parm\n"
+              "          onlinecal export cal.json --format px4 --onboard vehicle.params --out -",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="onlinecal", description="Online IMU calibration (Zhang et al. 2014 + UKF)")
+    import textwrap
+
+    fmt = argparse.RawDescriptionHelpFormatter
+    status = textwrap.fill(EXIT_STATUS_TEXT, 100)
+    csv = textwrap.fill(CSV_SCHEMA, 100)
+    ap = _Parser(prog="onlinecal", description="Online IMU calibration (Zhang et al. 2014 + UKF)",
+                 epilog=status + "\n\n" + csv, formatter_class=fmt)
     ap.add_argument("--version", action="version", version=f"onlinecal {__version__}")
     ap.add_argument("--quiet", "-q", action="store_true",
                     help="no progress bars (they are also off when stderr is not a terminal)")
-    sub = ap.add_subparsers(dest="cmd", required=True)
+    sub = ap.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
 
-    p = sub.add_parser("demo", help="simulate, calibrate (batch + online), compare with truth")
-    p.add_argument("--out", default="onlinecal-demo")
-    p.add_argument("--seed", type=int, default=0)
+    def command(name: str, help_: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_, description=help_, formatter_class=fmt,
+                           epilog=_EXAMPLES.get(name, "") + "\n\n" + status)
+        _add_quiet(p)
+        return p
+
+    p = command("demo", "simulate, calibrate (batch + online), compare with truth")
+    p.add_argument("--out", default="onlinecal-demo", metavar="DIR", help="output directory (default ./onlinecal-demo)")
+    p.add_argument("--seed", type=_SEED, default=0, help="simulation seed (default 0)")
     p.set_defaults(fn=cmd_demo)
 
-    p = sub.add_parser("simulate", help="write a simulated session (.tlog/.csv/.bin) and its truth")
-    p.add_argument("--out", required=True)
+    p = command("simulate", "write a simulated session (.tlog/.csv/.bin) and its truth (FILE.truth.json)")
+    p.add_argument("--out", required=True, metavar="FILE", help="FILE.tlog, FILE.csv or FILE.bin")
     p.add_argument("--profile", choices=["paper", "flight"], default="paper")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--duration", type=float, default=None)
-    p.add_argument("--rate", type=float, default=100.0, help="IMU rate, Hz")
-    p.add_argument("--mag-rate", type=float, default=50.0, help="magnetometer rate, Hz")
-    p.add_argument("--effect", action="append", default=[], help="NAME[:key=value,...] (repeatable)")
+    p.add_argument("--seed", type=_SEED, default=0)
+    p.add_argument("--duration", type=_POS, default=None, metavar="S", help="seconds (default: the profile's)")
+    p.add_argument("--rate", type=_POS, default=100.0, metavar="HZ", help="IMU rate, Hz (default 100)")
+    p.add_argument("--mag-rate", type=_POS, default=50.0, metavar="HZ", help="magnetometer rate, Hz (default 50)")
+    p.add_argument("--effect", action="append", default=[], metavar="SPEC",
+                   help="NAME[:key=value,...] (repeatable; names in the README's effect table)")
     p.set_defaults(fn=cmd_simulate)
 
-    p = sub.add_parser("batch", help="the paper's offline pipeline over logs of one sensor unit")
-    p.add_argument("logs", nargs="+")
-    p.add_argument("--json", default=None)
-    p.add_argument("--gravity", type=float, default=9.80665, help="local g, m/s^2")
+    p = command("batch", "the paper's offline pipeline over logs of one sensor unit")
+    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin or .csv. " + CSV_SCHEMA)
+    _add_json(p, "the calibration")
+    p.add_argument("--gravity", type=_POS, default=9.80665, metavar="G", help="local g, m/s^2 (default 9.80665)")
     p.add_argument("--report", default=None, metavar="DIR", help="write PNG figures and report.md into DIR")
-    _add_quiet(p)
     _add_scales(p)
     p.set_defaults(fn=cmd_batch)
 
-    p = sub.add_parser("replay", help="the augmented-state UKF over logs")
-    p.add_argument("logs", nargs="+")
-    p.add_argument("--init", default="batch", help="batch | none | CAL.json")
-    p.add_argument("--json", default=None,
-                   help="calibration JSON; with --jobs/--executor: JSON Lines, one object per log ('-': stdout)")
-    p.add_argument("--trace", default=None)
+    p = command("replay", "the augmented-state UKF over logs")
+    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin or .csv")
+    p.add_argument("--init", default="batch", metavar="batch|none|CAL.json",
+                   help="the filter's start: the batch pipeline on the same logs (default), a cold start, or "
+                        "a calibration JSON (a simulator truth file also works)")
+    p.add_argument("--json", default=None, metavar="OUT",
+                   help="calibration JSON with its \"health\"; with --jobs/--executor: JSON Lines, one object "
+                        "per log ('-': stdout)")
+    p.add_argument("--trace", default=None, metavar="OUT.csv", help="the filter's state over time, CSV")
     p.add_argument("--report", default=None, metavar="DIR", help="write PNG figures and report.md into DIR")
     p.add_argument("--jobs", type=_positive_int, default=None, metavar="N",
                    help="fleet mode: every log an independent unit, N in parallel (one JSON line per log)")
@@ -435,66 +732,105 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fleet mode on local processes or on dask.distributed (extra onlinecal[dask])")
     p.add_argument("--scheduler", default=None, metavar="ADDR",
                    help="dask scheduler address (default: a LocalCluster of --jobs workers)")
-    _add_quiet(p)
     _add_scales(p)
     p.set_defaults(fn=cmd_replay)
 
-    p = sub.add_parser("run", help="the UKF on a live MAVLink link (docs/live.md)")
+    p = command("run", "the UKF on a live MAVLink link (docs/live.md)")
     p.add_argument("--connect", required=True, metavar="URL",
                    help="pymavlink connection: udpin:0.0.0.0:14550, tcp:127.0.0.1:5760, /dev/ttyACM0,115200")
     p.add_argument("--init", default=None, metavar="CAL.json", help="start calibration (default: cold start)")
-    p.add_argument("--json", default=None, metavar="OUT", help="calibration JSON written at the end")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    _add_json(p, "the calibration at the end")
+    p.add_argument("--duration", type=_POS, default=None, metavar="S",
                    help="s of vehicle time from the first sample (default: until Ctrl-C)")
     p.add_argument("--trace", default=None, metavar="OUT.csv", help="trace CSV, appended as the run goes")
     p.add_argument("--checkpoint", default=None, metavar="FILE", help="write the run's state there")
-    p.add_argument("--checkpoint-every", type=float, default=10.0, metavar="S",
+    p.add_argument("--checkpoint-every", type=_POS, default=10.0, metavar="S",
                    help="wall seconds between checkpoints (default 10)")
     p.add_argument("--resume", action="store_true", help="continue from --checkpoint FILE")
-    p.add_argument("--rate", type=float, default=100.0, metavar="HZ",
+    p.add_argument("--rate", type=_NONNEG, default=100.0, metavar="HZ",
                    help="RAW_IMU rate asked of the vehicle (SET_MESSAGE_INTERVAL; 0: ask nothing; default 100)")
     p.add_argument("--apply", choices=["ardupilot", "px4"], default=None,
                    help="afterwards, set the calibration as vehicle parameters (PARAM_SET, each confirmed)")
     _add_scales(p)
     p.set_defaults(fn=cmd_run)
 
-    p = sub.add_parser("compare", help="parameter-by-parameter difference of two calibrations")
-    p.add_argument("a")
-    p.add_argument("b")
+    p = command("compare", "parameter-by-parameter difference of two calibrations (or a truth file)")
+    p.add_argument("a", metavar="A.json", help="calibration JSON or simulator truth file (FILE.truth.json)")
+    p.add_argument("b", metavar="B.json", help="calibration JSON or simulator truth file")
+    p.add_argument("--tol", type=_POS, default=None, metavar="N",
+                   help="exit 1 when a parameter with a σ differs by more than N σ (σ of A and B combined)")
+    p.add_argument("--abs-tol", type=_POS, default=None, metavar="X",
+                   help="exit 1 when a parameter without σ differs by more than X in its unit")
     p.set_defaults(fn=cmd_compare)
 
-    p = sub.add_parser("diagnose", help="what the model gets wrong on this data, the cause, the extended model")
-    p.add_argument("logs", nargs="+")
-    p.add_argument("--json", default=None)
-    p.add_argument("--report", default=None, help="directory for report.md and plots")
-    p.add_argument("--gravity", type=float, default=9.80665, help="local g, m/s^2")
-    p.add_argument("--seed", type=int, default=0, help="seed of the re-simulation's noise")
+    p = command("diagnose", "what the model gets wrong on this data, the cause, the extended model")
+    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin or .csv")
+    _add_json(p, "the diagnosis")
+    p.add_argument("--report", default=None, metavar="DIR", help="directory for report.md and plots")
+    p.add_argument("--gravity", type=_POS, default=9.80665, metavar="G", help="local g, m/s^2")
+    p.add_argument("--seed", type=_SEED, default=0, help="seed of the re-simulation's noise")
     _add_scales(p)
     p.set_defaults(fn=cmd_diagnose)
 
-    p = sub.add_parser("export", help="vehicle parameters (ArduPilot .parm, PX4/QGroundControl .params)")
-    p.add_argument("cal")
+    p = command("export", "vehicle parameters (ArduPilot .parm, PX4/QGroundControl .params)")
+    p.add_argument("cal", metavar="CAL.json")
     p.add_argument("--format", choices=["ardupilot", "px4"], required=True)
-    p.add_argument("--out", default=None,
+    p.add_argument("--out", default=None, metavar="FILE",
                    help="parameter file (default CAL.parm / CAL.params beside CAL.json; '-' for stdout)")
     p.add_argument("--mag-unit", choices=["gauss", "mgauss", "uT", "nT", "T"], default="gauss",
                    help="unit of the raw magnetometer values the calibration was fitted on (default gauss: "
                         "what the .tlog and .bin readers produce)")
+    p.add_argument("--onboard", default=None, metavar="PARAMS",
+                   help="the vehicle's parameters in effect when the log was recorded (.parm or .params); the "
+                        "calibration was fitted on data those had already corrected (a .bin's IMU/MAG), so the "
+                        "export composes with them instead of correcting twice")
+    p.add_argument("--force", action="store_true",
+                   help="write every parameter even where its σ or the result's health does not support it")
     p.set_defaults(fn=cmd_export)
     return ap
 
 
+_seen_warnings: set[str] = set()
+
+
+def _one_line_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                      file: Any = None, line: str | None = None) -> None:
+    """Library warnings (numpy, scipy, matplotlib) as the tool's own one-line warnings, each once."""
+    text = str(message).strip().splitlines()[0] if str(message).strip() else category.__name__
+    if text in _seen_warnings:
+        return
+    _seen_warnings.add(text)
+    print(f"warning: {text} ({category.__name__} in {Path(filename).stem})", file=sys.stderr)
+
+
+def _quiet_libraries() -> None:
+    import logging
+    import warnings
+
+    warnings.showwarning = _one_line_warning
+    warnings.simplefilter("default")
+    logging.getLogger("matplotlib").setLevel(logging.ERROR)
+    for s in (sys.stdout, sys.stderr):  # a unicode file name or σ under LANG=C: never a UnicodeEncodeError
+        try:
+            s.reconfigure(errors="backslashreplace")  # type: ignore[union-attr]
+        except (AttributeError, ValueError):
+            pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from .batch.ellipsoid import FitError
+    from .calfile import CalFileError
+    from .files import OutputError
     from .io.base import LogError
 
+    _quiet_libraries()
     a = build_parser().parse_args(argv)
     from .progress import set_quiet
 
     set_quiet(getattr(a, "quiet", False))
     try:
         return int(a.fn(a))
-    except (LogError, UsageError) as e:
+    except (LogError, UsageError, CalFileError, OutputError) as e:
         print(f"onlinecal {a.cmd}: {e}", file=sys.stderr)
         return EXIT_INPUT
     except FitError as e:
@@ -507,3 +843,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"onlinecal {a.cmd}: interrupted", file=sys.stderr)
         return 130
+    except OSError as e:  # a file that vanished or cannot be read mid-run: input, not a bug
+        print(f"onlinecal {a.cmd}: {e.filename or ''}{': ' if e.filename else ''}{e.strerror or e}", file=sys.stderr)
+        return EXIT_INPUT
+    except MemoryError:
+        print(f"onlinecal {a.cmd}: out of memory (is the input far larger than a log?)", file=sys.stderr)
+        return EXIT_INPUT
+    except Exception as e:  # noqa: BLE001 - never a traceback; ONLINECAL_DEBUG=1 shows it
+        if os.environ.get("ONLINECAL_DEBUG"):
+            raise
+        print(f"onlinecal {a.cmd}: internal error: {type(e).__name__}: {e} (a bug: please report it with the "
+              "command line; ONLINECAL_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return EXIT_INTERNAL

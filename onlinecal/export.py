@@ -212,12 +212,16 @@ class Export:
     dropped: dict[str, Dropped] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     mag_unit: str = "gauss"
+    withheld: dict[str, str] = field(default_factory=dict)  # name -> why it was not written
+    origin: dict[str, str] = field(default_factory=dict)  # name -> where its value came from
+    composed: bool = False  # composed with the onboard parameters (--onboard)
 
     def report(self) -> dict[str, Any]:
-        """The JSON sidecar: parameters, dropped parts and figures, warnings."""
+        """The JSON sidecar: parameters, where each came from, what was withheld, dropped parts, warnings."""
         return {
             "schema": "onlinecal.export/1", "format": self.fmt, "mag_unit": self.mag_unit,
-            "params": dict(self.params),
+            "params": dict(self.params), "origin": dict(self.origin), "withheld": dict(self.withheld),
+            "composed_with_onboard": self.composed,
             "dropped": {k: v.to_dict() for k, v in self.dropped.items()},
             "warnings": list(self.warnings),
         }
@@ -243,12 +247,21 @@ def _best_orientation(M: Array, fmt: str) -> tuple[int, Array, Array, Array]:
     return best[1], best[2], best[3], best[4]
 
 
-def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss") -> Export:
+def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss",
+                       onboard: dict[str, float] | None = None, force: bool = False,
+                       health: dict[str, Any] | None = None) -> Export:
     """Map ``cal`` to the parameters of ``fmt`` (``ardupilot`` or ``px4``), with what is dropped.
 
     Raw values are taken to be what the firmware's correction receives with its own calibration at
     the defaults (offsets 0, scales 1, soft-iron identity, orientation none): gyro rad/s, accel m/s²,
-    mag in ``mag_unit`` (a key of :data:`MAG_UNITS`).
+    mag in ``mag_unit`` (a key of :data:`MAG_UNITS`) — unless ``onboard`` gives the parameters that were
+    in effect when the data were logged: the data were then already corrected by them, and the export
+    writes the composition (:func:`compose_onboard`) instead of applying a correction twice.
+
+    Guard (:func:`guard`): a parameter whose term's σ exceeds :data:`SIGMA_MAX`, that the data did not
+    determine, or whose sensor the health verdict (``health``, else :func:`onlinecal.health.assess` of
+    ``cal``) names as degraded or failed, is not written (the vehicle keeps its value) and is listed in
+    ``withheld`` with the reason — unless ``force``.
     """
     if fmt not in FORMATS:
         raise ExportError(f"unknown format {fmt!r} (ardupilot, px4)")
@@ -256,6 +269,12 @@ def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss") -> E
         raise ExportError(f"unknown magnetometer unit {mag_unit!r} ({', '.join(MAG_UNITS)})")
     if cal.gyro is None and cal.accel is None and cal.mag is None:
         raise ExportError("the calibration has no sensor to export")
+    fitted = cal
+    composed = False
+    pre_warnings: list[str] = []
+    if onboard:
+        cal, pre_warnings = compose_onboard(cal, onboard, fmt, mag_unit)
+        composed = True
     ap = fmt == "ardupilot"
     params: dict[str, float] = {}
     types: dict[str, int] = {}
@@ -263,7 +282,8 @@ def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss") -> E
     warnings: list[str] = []
 
     def put(name: str, value: float, typ: int = MAV_PARAM_TYPE_REAL32) -> None:
-        if not math.isfinite(value):
+        # float32 (what the firmware stores) overflows to inf beyond 3.4e38: refuse far earlier
+        if not math.isfinite(value) or abs(value) > 1e30:
             raise ExportError(f"{name} would be {value}: the calibration is degenerate")
         params[name] = float(value)
         types[name] = typ
@@ -344,7 +364,7 @@ def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss") -> E
         put3("INS_GYROFFS_{}" if ap else "CAL_GYRO0_{}OFF", cal.gyro.bias)
         gyr_block = {n: params.pop(n) for n in list(params)[before:]}
         dropped["gyro"] = Dropped.from_E(
-            "gyro", np.linalg.inv(cal.gyro.matrix), 1.0,
+            "gyro", np.asarray(np.linalg.inv(cal.gyro.matrix), float), 1.0,
             "the gyroscope's scale, misalignment and non-orthogonality; only the bias is kept")
         warnings.append("gyro: the firmware re-estimates its gyro offsets at every boot (ArduPilot INS_GYR_CAL, "
                         "PX4's gyro calibration at start-up), overwriting these unless that is turned off")
@@ -366,7 +386,186 @@ def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss") -> E
     if not ap:
         warnings.append("PX4 applies CAL_<S>0_* only if CAL_<S>0_ID holds the sensor's device id; this file does "
                         "not set the ids (calibrate once in QGroundControl so slot 0 belongs to this sensor)")
-    return Export(fmt, ordered, {n: types[n] for n in ordered}, dropped, warnings, mag_unit)
+    withheld = {} if force else guard(fitted, list(ordered), health)
+    if force and guard(fitted, list(ordered), health):
+        warnings.append("--force: parameters the σ or the health verdict do not support are written anyway")
+    origin = {n: _origin(n, fitted, composed, onboard) for n in ordered}
+    kept = {n: v for n, v in ordered.items() if n not in withheld}
+    if not any(c.sigma for c in (fitted.gyro, fitted.accel, fitted.mag) if c is not None):
+        warnings.append("the calibration carries no σ: nothing could be checked against its uncertainty")
+    return Export(fmt, kept, {n: types[n] for n in kept}, dropped, pre_warnings + warnings, mag_unit,
+                  withheld, origin, composed)
+
+
+# -- guard, origin, composition with the onboard parameters ----------------------------------------
+
+# Largest 1σ with which a term is written (units of the calibration: rad/s, m/s², the field's unit for
+# the magnetometer after its matrix, rad): beyond, the value is noise and the vehicle's own is as good.
+SIGMA_MAX = {("gyro", "bias"): 0.01, ("accel", "bias"): 0.05, ("accel", "scale"): 0.01,
+             ("mag", "bias"): 0.05, ("mag", "scale"): 0.05, ("mag", "xi"): 0.05, ("mag", "alpha"): 0.05}
+
+
+def param_terms(name: str) -> tuple[str, list[tuple[str, int | None]]]:
+    """The sensor and the calibration terms ``(param, axis index or None for all)`` a firmware parameter is
+    computed from (either format)."""
+    n = name.upper()
+    ax = {"X": 0, "Y": 1, "Z": 2}
+    if n.startswith(("COMPASS_", "CAL_MAG0_")):
+        if "OFS" in n or n.endswith("OFF"):
+            k = n[-1] if n.startswith("COMPASS_") else n[len("CAL_MAG0_")]
+            return "mag", [("bias", ax[k]), ("scale", None)]
+        return "mag", [("scale", None), ("xi", None), ("alpha", None)]
+    sensor = "gyro" if ("GYR" in n) else "accel"
+    k = n[-1] if n.startswith("INS_") else n[len("CAL_ACC0_") if sensor == "accel" else len("CAL_GYRO0_")]
+    if "SCAL" in n:
+        return sensor, [("scale", ax[k])]
+    return sensor, [("bias", ax[k])]
+
+
+def guard(cal: Calibration, names: Sequence[str], health: dict[str, Any] | None = None) -> dict[str, str]:
+    """name → why, for each parameter of ``names`` the calibration does not support (see
+    :func:`export_calibration`). ``health``: a stored verdict (its reasons are added to a fresh
+    :func:`onlinecal.health.assess` of ``cal``)."""
+    from .health import assess
+
+    fresh = assess(cal)
+    reasons = list(fresh["reasons"]) + [r for r in (health or {}).get("reasons", []) if r not in fresh["reasons"]]
+    verdict = fresh["verdict"] if not health else max(
+        (fresh["verdict"], str(health.get("verdict", "ok"))), key=("ok", "degraded", "failed").index)
+    undetermined = set(fresh["checks"].get("undetermined", [])) | set(
+        ((health or {}).get("checks") or {}).get("undetermined") or [])
+    by_sensor = {s: [r for r in reasons if r.startswith(f"{s}:")] for s in ("gyro", "accel", "mag")}
+    general = [r for r in reasons if not any(r.startswith(f"{s}:") for s in ("gyro", "accel", "mag"))]
+    out: dict[str, str] = {}
+    for name in names:
+        sensor, terms = param_terms(name)
+        c = cal.sensor(sensor)
+        if c is None:
+            continue
+        if by_sensor[sensor]:
+            out[name] = f"health: {by_sensor[sensor][0]}"
+            continue
+        if verdict == "failed" and general:
+            out[name] = f"health failed: {general[0]}"
+            continue
+        for p, i in terms:
+            keys = {f"{sensor}.{p}"} | ({f"{sensor}.{p}.{a}" for a in "xyz"} if i is None
+                                        else {f"{sensor}.{p}.{'xyz'[i]}"})
+            if keys & undetermined:
+                out[name] = f"{sorted(keys & undetermined)[0]} was not determined by the data"
+                break
+            lim = SIGMA_MAX.get((sensor, p))
+            sig = c.sigma.get(p)
+            if lim is None or not c.sigma:
+                continue  # no σ at all: nothing to check against (said once in the warnings)
+            if sig is None:
+                out[name] = f"{sensor}.{p} has no σ (the fit did not determine it)"
+                break
+            v = np.asarray(sig, float).reshape(-1)[: 3]
+            v = v if i is None else v[i : i + 1]
+            if p == "bias" and sensor == "mag":
+                v = v * float(np.abs(np.diag(c.matrix)).mean())  # in units of the local field
+            if p == "scale" and sensor == "mag":
+                v = v / np.abs(c.scale[: v.size] if i is None else c.scale[i : i + 1])  # relative
+            if not np.all(np.isfinite(v)) or np.any(v > lim):
+                worst = float(np.nanmax(v)) if np.any(np.isfinite(v)) else float("nan")
+                axis = "" if i is None else "." + "xyz"[i]
+                out[name] = (f"{sensor}.{p}{axis} σ {worst:.3g} above {lim:g}"
+                             f"{' (relative)' if (sensor, p) == ('mag', 'scale') else ''}: not determined well enough")
+                break
+    return out
+
+
+def _origin(name: str, cal: Calibration, composed: bool, onboard: dict[str, float] | None) -> str:
+    """One phrase: the calibration terms behind ``name``, their values and σ, and the composition."""
+    sensor, terms = param_terms(name)
+    c = cal.sensor(sensor)
+    src = f"{cal.source}"
+    if c is None:
+        return src
+    bits = []
+    for p, i in terms[:1]:
+        val = np.asarray(c.params()[p])
+        sig = c.sigma.get(p)
+        if i is None:
+            bits.append(f"{sensor}.{p} {np.array2string(val, precision=5, separator=', ')}")
+        else:
+            sg = f" ± {float(np.asarray(sig).reshape(-1)[i]):.2g}" if sig is not None else " (σ unknown)"
+            bits.append(f"{sensor}.{p}.{'xyz'[i]} {float(val[i]):+.6g}{sg}")
+    out = f"{', '.join(bits)} ({src})"
+    if composed:
+        out += "; composed with the onboard parameters" + (f" ({name} was {onboard[name]:g})"
+                                                          if onboard and name in onboard else "")
+    return out
+
+
+def _diag_or(d: dict[str, float], names: Sequence[str], default: float, zero_is_default: bool = False) -> Array:
+    v = np.array([float(d.get(n, default)) for n in names])
+    if zero_is_default:
+        v[v == 0] = default
+    return v
+
+
+def firmware_correction(onboard: dict[str, float], fmt: str, mag_unit: str = "gauss") -> dict[str, Any]:
+    """The correction the firmware applied with ``onboard`` parameters, per sensor, as
+    ``(f, F)`` with ``corrected = F (raw − f)`` in the calibration's raw units (see the module doc for each
+    firmware's formula). Sensors with no parameter in ``onboard`` are absent."""
+    from .model import SensorCalibration
+
+    out: dict[str, Any] = {}
+    k = MAG_UNITS[mag_unit] * (1e3 if fmt == "ardupilot" else 1.0)  # raw unit -> firmware unit
+    if fmt == "ardupilot":
+        if any(n.startswith("INS_ACC") for n in onboard):
+            off = _diag_or(onboard, [f"INS_ACCOFFS_{a}" for a in "XYZ"], 0.0)
+            sc = _diag_or(onboard, [f"INS_ACCSCAL_{a}" for a in "XYZ"], 1.0, zero_is_default=True)
+            out["accel"] = SensorCalibration(off, np.diag(sc))
+        if any(n.startswith("INS_GYROFFS") for n in onboard):
+            out["gyro"] = SensorCalibration(_diag_or(onboard, [f"INS_GYROFFS_{a}" for a in "XYZ"], 0.0), np.eye(3))
+        if any(n.startswith("COMPASS_") for n in onboard):
+            ofs = _diag_or(onboard, [f"COMPASS_OFS_{a}" for a in "XYZ"], 0.0)
+            dia = _diag_or(onboard, [f"COMPASS_DIA_{a}" for a in "XYZ"], 1.0, zero_is_default=True)
+            odi = _diag_or(onboard, [f"COMPASS_ODI_{a}" for a in "XYZ"], 0.0)
+            W = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+            cs = float(onboard.get("COMPASS_SCALE", 1.0)) or 1.0
+            out["mag"] = SensorCalibration(-ofs / k, cs * W)  # W (raw·k + OFS) / k = W (raw − (−OFS/k))
+    else:
+        if any(n.startswith("CAL_ACC0_") for n in onboard):
+            off = _diag_or(onboard, [f"CAL_ACC0_{a}OFF" for a in "XYZ"], 0.0)
+            sc = _diag_or(onboard, [f"CAL_ACC0_{a}SCALE" for a in "XYZ"], 1.0, zero_is_default=True)
+            out["accel"] = SensorCalibration(off, np.diag(sc))
+        if any(n.startswith("CAL_GYRO0_") for n in onboard):
+            out["gyro"] = SensorCalibration(_diag_or(onboard, [f"CAL_GYRO0_{a}OFF" for a in "XYZ"], 0.0), np.eye(3))
+        if any(n.startswith("CAL_MAG0_") for n in onboard):
+            off = _diag_or(onboard, [f"CAL_MAG0_{a}OFF" for a in "XYZ"], 0.0)
+            dia = _diag_or(onboard, [f"CAL_MAG0_{a}SCALE" for a in "XYZ"], 1.0, zero_is_default=True)
+            odi = _diag_or(onboard, [f"CAL_MAG0_{a}ODIAG" for a in "XYZ"], 0.0)
+            W = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+            out["mag"] = SensorCalibration(off / k, W)
+    return out
+
+
+def compose_onboard(cal: Calibration, onboard: dict[str, float], fmt: str,
+                    mag_unit: str = "gauss") -> tuple[Calibration, list[str]]:
+    """The calibration of the *raw* sensor, from ``cal`` fitted on data the firmware had already corrected
+    with ``onboard``: with the firmware's ``corrected = F (raw − f)`` and ``c = M (corrected − b)``,
+    ``c = (M F) (raw − (f + F⁻¹ b))``. σ are carried over unchanged (F is within a few % of I for any
+    working calibration, so they change by as much). Returns the composed calibration and warnings."""
+    fw = firmware_correction(onboard, fmt, mag_unit)
+    warnings: list[str] = []
+    rot = onboard.get("COMPASS_ORIENT" if fmt == "ardupilot" else "CAL_MAG0_ROT", 0)
+    if rot:
+        warnings.append(f"onboard mag orientation {rot:g} is not composed (taken as applied outside the data)")
+    kw: dict[str, Any] = {}
+    for s in ("gyro", "accel", "mag"):
+        c, f = cal.sensor(s), fw.get(s)
+        if c is None or f is None:
+            continue
+        if abs(np.linalg.det(f.matrix)) < 1e-9:
+            raise ExportError(f"the onboard {s} parameters form a singular correction")
+        kw[s] = type(c)(f.bias + np.linalg.solve(f.matrix, c.bias), c.matrix @ f.matrix, c.sigma)
+    if not kw:
+        warnings.append("--onboard holds no calibration parameter of this format: nothing to compose with")
+    return cal.replace(**kw), warnings
 
 
 def vehicle_params(cal: Calibration, fmt: str, mag_unit: str = "gauss") -> dict[str, float]:
@@ -402,10 +601,9 @@ def write_parm(
       lines, then ``vehicle-id<TAB>component-id<TAB>NAME<TAB>VALUE<TAB>MAV_PARAM_TYPE`` (1, 1, type 9 =
       REAL32, 6 = INT32).
     """
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(render_parm(params, fmt, header, types))
-    tmp.replace(p)
+    from .files import atomic_write
+
+    atomic_write(path, render_parm(params, fmt, header, types))
 
 
 def render_parm(
@@ -429,8 +627,15 @@ def render_parm(
 
 
 def header_lines(exp: Export, source: str) -> list[str]:
-    """Comment lines for the file: where it came from, the conventions, and what was dropped."""
-    out = [f"onlinecal export --format {exp.fmt} of {source} (mag raw unit: {exp.mag_unit})"]
+    """Comment lines for the file: where it came from, per parameter where its value came from, what
+    was withheld (kept at the vehicle's value) and why, and what the firmware cannot express."""
+    out = [f"onlinecal export --format {exp.fmt} of {source} (mag raw unit: {exp.mag_unit})"
+           + ("; composed with the onboard parameters given" if exp.composed else "")]
+    for n in exp.params:
+        if n in exp.origin:
+            out.append(f"{n}: from {exp.origin[n]}")
+    for n, why in exp.withheld.items():
+        out.append(f"{n}: NOT WRITTEN (the vehicle keeps its value): {why}")
     for name, d in exp.dropped.items():
         if d.exact:
             out.append(f"{name}: expressed exactly")

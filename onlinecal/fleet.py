@@ -70,7 +70,7 @@ def log_start_time(path: str | Path, data: Any = None) -> tuple[float | None, st
                     return s, "tlog"
         except OSError:
             pass
-    if data is not None and getattr(data, "n_imu", 0):
+    if data is not None and int(getattr(data, "n_imu", 0) or 0) > 0:
         t0 = float(data.t_imu[0])
         if _EPOCH_LO <= t0 <= _EPOCH_HI:
             return t0, "log"
@@ -78,18 +78,10 @@ def log_start_time(path: str | Path, data: Any = None) -> tuple[float | None, st
 
 
 def _json_safe(x: Any) -> Any:
-    """Plain JSON (RFC 8259): non-finite floats become null, numpy scalars and arrays plain numbers/lists."""
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json_safe(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
+    """Plain JSON (RFC 8259) through the package's one sanitiser (:func:`onlinecal.files.sanitize`)."""
+    from .files import sanitize
+
+    return sanitize(x)
 
 
 def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: dict[str, float | None] | None = None,
@@ -108,9 +100,11 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
         "schema": FLEET_SCHEMA, "log": str(path), "ok": False, "error": None, "calibration": None,
         "init": init if isinstance(init, str) else ("none" if init is None else "file"),
         "n_imu": 0, "log_s": 0.0, "wall_s": 0.0, "t_start": None, "t_start_source": None, "warnings": [],
+        "health": None,
     }
     try:
-        d = read_log(path, **(scales or {}))
+        sc: dict[str, Any] = dict(scales or {})
+        d = read_log(path, **sc)
         rec["n_imu"], rec["log_s"] = d.n_imu, d.duration
         rec["t_start"], rec["t_start_source"] = log_start_time(path, d)
         warnings = list(d.warnings)
@@ -126,9 +120,16 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
             raise ValueError(f"init must be 'batch', 'none' or a calibration dict, not {init!r}")
         res = replay_chunked([d], cal0)
         warnings += list(getattr(res, "warnings", []))
-        rec["calibration"] = res.calibration.to_dict()
+        from .health import assess
+
+        health = assess(res.calibration, nis=res.nis, events=res.events, observability=res.observability,
+                        mag_raw=d.mag if d.n_mag else None, raw={"gyro": d.gyro, "accel": d.acc})
+        rec["calibration"] = {**res.calibration.replace(meta={**res.calibration.meta, "health": health}).to_dict(),
+                              "health": health}
+        rec["health"] = health
         rec["warnings"] = list(dict.fromkeys(warnings))
-        rec["ok"] = True
+        # a calibration that failed its health check is no result: it is kept out of the drift summary
+        rec["ok"] = health["verdict"] != "failed"
     except LogError as e:
         rec["error"] = str(e)
     except FitError as e:
@@ -142,7 +143,8 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
 def _failed(path: str, e: BaseException) -> dict[str, Any]:
     return _json_safe({"schema": FLEET_SCHEMA, "log": str(path), "ok": False, "calibration": None,
                        "error": f"{path}: worker failed: {type(e).__name__}: {e}", "init": None, "n_imu": 0,
-                       "log_s": 0.0, "wall_s": 0.0, "t_start": None, "t_start_source": None, "warnings": []})
+                       "log_s": 0.0, "wall_s": 0.0, "t_start": None, "t_start_source": None, "warnings": [],
+                       "health": None})
 
 
 def run_fleet(paths: Sequence[str], init: str | dict[str, Any] | None = "batch", jobs: int = 1,
@@ -316,7 +318,7 @@ def fleet_summary(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     then per day (:func:`weighted_trend` over days since the first log). Otherwise they keep the given order
     and no trend is computed. Per parameter: n, first, last, change (last − first), span (max − min).
     """
-    ok = [r for r in records if r.get("ok")]
+    ok = [r for r in records if r.get("ok") and r.get("calibration")]
     failed = [r["log"] for r in records if not r.get("ok")]
     timed = bool(ok) and all(r.get("t_start") is not None for r in ok) and len({r["t_start"] for r in ok}) >= 2
     order = sorted(ok, key=lambda r: r["t_start"]) if timed else list(ok)

@@ -478,10 +478,9 @@ class Calibration:
 
     def save(self, path: str | Path) -> None:
         """Write atomically (temp file then rename) so a crash never leaves half a calibration."""
-        p = Path(path)
-        tmp = p.with_name(p.name + ".tmp")
-        tmp.write_text(self.to_json() + "\n")
-        tmp.replace(p)
+        from .files import atomic_write, dumps  # the package's one writer and strict-JSON sanitiser
+
+        atomic_write(path, dumps(self.to_dict()) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> Calibration:

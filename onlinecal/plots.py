@@ -39,10 +39,20 @@ def _color(label: str, i: int) -> str:
 
 
 def _save(fig: Any, path: str | Path) -> Path:
+    import io
+    import warnings
+
+    from .files import atomic_write
+
     p = Path(path)
-    fig.tight_layout()
-    fig.savefig(p, dpi=DPI)
+    with warnings.catch_warnings():
+        # tight_layout's "not compatible" notice says nothing about the data; the figure is still right
+        warnings.simplefilter("ignore", UserWarning)
+        fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=DPI, format=p.suffix.lstrip(".") or "png")
     pyplot().close(fig)
+    atomic_write(p, buf.getvalue())  # one writer for every output: never half a PNG
     return p
 
 

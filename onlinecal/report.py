@@ -40,60 +40,98 @@ def param_rows(cals: dict[str, Calibration | None]) -> list[dict[str, Any]]:
 
 
 def _fmt(x: float | None, digits: int = 6) -> str:
-    return "—" if x is None else f"{x:+.{digits}f}"
+    return "—" if x is None or not np.isfinite(x) else f"{x:+.{digits}f}"
 
 
-def truth_table(truth: Calibration | None, batch: Calibration | None, online: Calibration | None) -> str:
-    """Text table: parameter · truth · batch · online ± 3σ (the demo's and the corpus' table)."""
-    rows = param_rows({"truth": truth, "batch": batch, "online": online})
-    head = f"{'parameter':<16}{'truth':>12}{'batch':>12}{'online':>12}{'± 3σ':>11}  flag"
+def _fmt_sig(x: float | None) -> str:
+    return "—" if x is None or not np.isfinite(x) or x <= 0 else f"{x:.1e}"
+
+
+def truth_table(truth: Calibration | None, batch: Calibration | None, online: Calibration | None,
+                labels: tuple[str, str] = ("batch", "online")) -> str:
+    """Text table: parameter · unit · truth · batch ± 3σ · online ± 3σ (the demo's, batch's, replay's table).
+
+    Only the columns that carry data are drawn: a calibration that is None has no column, and a σ column
+    appears only where that calibration has a σ for some parameter. ``labels`` names the two estimate
+    columns (e.g. ``("init", "online")`` for a replay from a calibration file). The flag marks an online
+    value more than 3 combined σ from the other estimate."""
+    la, lb = labels
+    rows = param_rows({"truth": truth, la: batch, lb: online})
+    have = {k: c is not None for k, c in (("truth", truth), (la, batch), (lb, online))}
+    sig = {k: have[k] and any(r.get(k + "_sigma") for r in rows) for k in (la, lb)}
+    cols: list[tuple[str, str, int]] = []  # (key, header, width)
+    if have["truth"]:
+        cols.append(("truth", "truth", 12))
+    for k in (la, lb):
+        if have[k]:
+            cols.append((k, k, 12))
+            if sig[k]:
+                cols.append((k + "_sigma", "± 3σ", 9))
+    both = have[la] and have[lb]
+    head = f"{'parameter':<16}{'unit':<7}" + "".join(f"{h:>{w}}" for _, h, w in cols) + ("  flag" if both else "")
     lines = [head, "-" * len(head)]
     for r in rows:
-        on = r.get("online")
-        sig = r.get("online_sigma")
+        on, ref = r.get(lb), r.get(la)
+        s_on, s_ref = r.get(lb + "_sigma"), r.get(la + "_sigma")
         flag = ""
-        if on is not None and sig and r.get("batch") is not None:
-            if abs(on - r["batch"]) > 3 * np.hypot(sig, r.get("batch_sigma") or 0.0):
-                flag = "online≠batch"
+        if both and on is not None and ref is not None and s_on:
+            if abs(on - ref) > 3 * np.hypot(s_on, s_ref or 0.0):
+                flag = f"{lb}≠{la}"
+        cells = []
+        for k, _, w in cols:
+            v = r.get(k)
+            cells.append(f"{_fmt_sig(3 * v if v else None):>{w}}" if k.endswith("_sigma") else f"{_fmt(v):>{w}}")
         name = f"{r['sensor']}.{r['param']}.{r['axis']}"
-        lines.append(
-            f"{name:<16}{_fmt(r.get('truth')):>12}{_fmt(r.get('batch')):>12}{_fmt(on):>12}"
-            f"{(f'{3 * sig:.1e}' if sig else '—'):>11}  {flag}"
-        )
+        lines.append(f"{name:<16}{r['unit'] or '-':<7}" + "".join(cells) + (f"  {flag}" if flag else ""))
     return "\n".join(lines)
 
 
-def compare(a: Calibration, b: Calibration) -> list[dict[str, Any]]:
-    """Parameter-by-parameter difference b − a, and in σ where either side knows its σ."""
+def compare(a: Calibration, b: Calibration, tol: float | None = None,
+            abs_tol: float | None = None) -> list[dict[str, Any]]:
+    """Parameter-by-parameter difference b − a, and in σ where either side knows its σ.
+
+    ``beyond`` marks a row outside the tolerance: ``|Δ| > tol·σ`` where σ (A and B combined) is known,
+    ``|Δ| > abs_tol`` (in the parameter's unit) where it is not."""
     out = []
     for r in param_rows({"a": a, "b": b}):
         if r.get("a") is None or r.get("b") is None:
             continue
         d = r["b"] - r["a"]
-        sig = np.hypot(r.get("a_sigma") or 0.0, r.get("b_sigma") or 0.0)
-        out.append({**{k: r[k] for k in ("sensor", "param", "axis", "unit", "a", "b")},
-                    "diff": d, "sigma": float(sig) if sig > 0 else None,
-                    "n_sigma": float(abs(d) / sig) if sig > 0 else None})
+        sa, sb = r.get("a_sigma"), r.get("b_sigma")
+        sig = float(np.hypot(sa if sa is not None and np.isfinite(sa) else 0.0,
+                             sb if sb is not None and np.isfinite(sb) else 0.0))
+        row = {**{k: r[k] for k in ("sensor", "param", "axis", "unit", "a", "b")},
+               "diff": d, "sigma": sig if sig > 0 else None, "n_sigma": float(abs(d) / sig) if sig > 0 else None}
+        row["beyond"] = bool((tol is not None and sig > 0 and abs(d) > tol * sig)
+                             or (abs_tol is not None and sig == 0 and abs(d) > abs_tol))
+        out.append(row)
     for s in SENSORS:
         ca, cb = a.sensor(s), b.sensor(s)
         if isinstance(ca, SensorCalibration) and isinstance(cb, SensorCalibration):
             out.append({"sensor": s, "param": "matrix", "axis": None, "unit": "",
                         "a": None, "b": None, "diff": cb.matrix_rel_error(ca), "sigma": None,
-                        "n_sigma": None})
+                        "n_sigma": None, "beyond": False})
     return out
 
 
-def compare_text(a: Calibration, b: Calibration) -> str:
-    lines = [f"{'parameter':<16}{'A':>13}{'B':>13}{'B − A':>13}{'σ':>10}{'|Δ|/σ':>8}  unit"]
-    for r in compare(a, b):
+def compare_text(a: Calibration, b: Calibration, rows: list[dict[str, Any]] | None = None,
+                 tol: float | None = None, abs_tol: float | None = None) -> str:
+    """The comparison as a table with a space between every column; rows beyond the tolerance flagged."""
+    if rows is None:
+        rows = compare(a, b, tol, abs_tol)
+    head = f"{'parameter':<16} {'unit':<6} {'A':>13} {'B':>13} {'B − A':>11} {'σ':>9} {'|Δ|/σ':>8}"
+    lines = [head, "-" * (len(head) + 8)]
+    for r in rows:
         if r["param"] == "matrix":
-            lines.append(f"{r['sensor'] + '.matrix':<16}{'':>13}{'':>13}{r['diff']:>13.2e}{'':>10}{'':>8}"
-                         "  relative (Frobenius)")
+            lines.append(f"{r['sensor'] + '.matrix':<16} {'rel.':<6} {'':>13} {'':>13} {r['diff']:>11.2e} "
+                         f"{'':>9} {'':>8}  (relative Frobenius difference)")
             continue
         name = f"{r['sensor']}.{r['param']}.{r['axis']}"
         sig = f"{r['sigma']:.1e}" if r["sigma"] else "—"
         ns = f"{r['n_sigma']:.1f}" if r["n_sigma"] is not None else "—"
-        lines.append(f"{name:<16}{r['a']:>+13.6f}{r['b']:>+13.6f}{r['diff']:>+13.2e}{sig:>10}{ns:>8}  {r['unit']}")
+        flag = "  BEYOND" if r.get("beyond") else ""
+        lines.append(f"{name:<16} {r['unit'] or '-':<6} {r['a']:>+13.6f} {r['b']:>+13.6f} {r['diff']:>+11.2e} "
+                     f"{sig:>9} {ns:>8}{flag}")
     return "\n".join(lines)
 
 
@@ -229,8 +267,8 @@ def write_report(out_dir: str | Any, logs: list[Any], command: str, batch: Any =
                "| k | log | t0 [s] | t1 [s] | samples | ‖ā‖ raw [m/s²] | "
                + " | ".join(f"‖ā‖ {k} [m/s²]" for k in acals) + " |",
                "|---:|---:|---:|---:|---:|---:|" + "---:|" * len(acals)]
-        for k, ((i, iv), a) in enumerate(zip(sts, means, strict=True)):
-            md.append(f"| {k} | {i} | {iv.t0:.6f} | {iv.t1:.6f} | {iv.n} | {np.linalg.norm(a):.5f} | "
+        for j, ((i, iv), a) in enumerate(zip(sts, means, strict=True)):
+            md.append(f"| {j} | {i} | {iv.t0:.6f} | {iv.t1:.6f} | {iv.n} | {np.linalg.norm(a):.5f} | "
                       + " | ".join(f"{np.linalg.norm(c.apply(a)):.5f}" for c in acals.values()) + " |")
         md += ["", "</details>", ""]
     else:
@@ -242,14 +280,14 @@ def write_report(out_dir: str | Any, logs: list[Any], command: str, batch: Any =
         md += ["## Online filter: parameters over time", "",
                "Each UKF calibration term over the replay: estimate, ±3σ band from the filter's covariance, and "
                + (", ".join(f"the {k} value (dashed)" for k in refs) or "no reference value") + ".", ""]
-        for s in SENSORS:
-            if ocal is None or ocal.sensor(s) is None:
+        for sn in SENSORS:
+            if ocal is None or ocal.sensor(sn) is None:
                 continue
-            step(f"ukf {s}")
-            name = plots.ukf_params(out / f"ukf_{s}.png", online.trace,
-                                    s, {k: c.sensor(s) for k, c in refs.items()}).name
+            step(f"ukf {sn}")
+            name = plots.ukf_params(out / f"ukf_{sn}.png", online.trace,
+                                    sn, {k: c.sensor(sn) for k, c in refs.items()}).name
             files.append(name)
-            md += [f"![{s} parameters]({name})", ""]
+            md += [f"![{sn} parameters]({name})", ""]
         md += [f"Replay: {online.n_imu} IMU samples, {online.log_s:.1f} s of log in {online.wall_s:.2f} s "
                f"({online.realtime_factor:.0f}× real time); {len(online.events)} filter events.", ""]
         if online.missing_motion:
@@ -283,5 +321,7 @@ def write_report(out_dir: str | Any, logs: list[Any], command: str, batch: Any =
     if warns:
         md += ["## Warnings", ""] + [f"- {w}" for w in warns] + [""]
     step("report.md")
-    (out / "report.md").write_text("\n".join(md))
+    from .files import atomic_write
+
+    atomic_write(out / "report.md", "\n".join(md))
     return [*files, "report.md"]

@@ -19,7 +19,7 @@ DAY = 86400.0
 TLOG_EPOCH_S = 1_700_000_000.0  # write_tlog stamps records with this wall-clock base + the IMU time
 DRIFT = 1e-3  # rad/s per day, gyro bias x of the drifting unit
 RECORD_KEYS = {"schema", "log", "ok", "error", "calibration", "init", "n_imu", "log_s", "wall_s", "t_start",
-               "t_start_source", "warnings"}
+               "t_start_source", "warnings", "health"}
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
@@ -185,3 +185,27 @@ def test_fleet_options_that_belong_to_one_replay_are_refused(tmp_path):
     assert r.returncode == 2 and "--report" in r.stderr
     r = cli("replay", "a.tlog", "--jobs", "0")
     assert r.returncode == 2 and "positive integer" in r.stderr
+
+
+def test_a_result_that_failed_its_health_is_not_ok(tmp_path, monkeypatch):
+    """`replay --jobs` marked a log whose result was a wreck (mag bias 60× the field, mag scale z 1e-6)
+    `ok: true`. The record now carries the health verdict and `ok` is false; the drift summary skips it."""
+    from types import SimpleNamespace
+
+    import onlinecal.fleet as fleet
+    from onlinecal.fleet import process_log
+    from onlinecal.model import Calibration
+
+    sim = simulate("paper", 5, duration=20.0)
+    log = tmp_path / "s.csv"
+    write_log(log, sim.data)
+    wreck = Calibration(gyro=SensorCalibration.from_params(bias=(0.01, 0, 0)),
+                        mag=SensorCalibration.from_params(bias=(-27.4, 15.6, 56.5), scale=(2.0, 2.1, 1e-6)),
+                        source="online")
+    fake = SimpleNamespace(calibration=wreck, nis={}, events=[], observability={}, warnings=[])
+    monkeypatch.setattr(fleet, "replay_chunked", lambda logs, init: fake)
+    rec = process_log(str(log), init="none")
+    assert rec["ok"] is False and rec["error"] is None and rec["health"]["verdict"] == "failed"
+    assert rec["calibration"]["health"]["verdict"] == "failed"
+    assert any("hard-iron" in r for r in rec["health"]["reasons"])
+    assert fleet_summary([rec])["failed"] == [str(log)]

@@ -88,8 +88,8 @@ def _align(
     report.figures["aligned_axes"] = "".join("xyz"[k] for k in sorted(normals))
     if len(normals) < 2:
         report.warnings.append(
-            f"{report.name}: rotation phases usable for alignment about {len(normals)} axis"
-            f"{'' if len(normals) == 1 else 'es'} (need 2): T_R is "
+            f"{report.name}: rotation phases usable for alignment about {len(normals)} "
+            f"{'axis' if len(normals) == 1 else 'axes'} (need 2): T_R is "
             + ("partly determined" if normals else "taken as identity")
         )
     Q = rotation_to_axes(normals)

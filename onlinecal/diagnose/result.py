@@ -97,7 +97,6 @@ class Diagnosis:
         return json.dumps(self.to_dict(), indent=2, allow_nan=False)
 
     def save(self, path: str | Path) -> None:
-        p = Path(path)
-        tmp = p.with_name(p.name + ".tmp")
-        tmp.write_text(self.to_json() + "\n")
-        tmp.replace(p)
+        from ..files import atomic_write  # the package's one writer
+
+        atomic_write(path, self.to_json() + "\n")

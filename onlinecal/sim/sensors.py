@@ -107,10 +107,9 @@ class Truth:
         return cls(calibration=Calibration.from_dict(d["calibration"]), **kw)
 
     def save(self, path: str | Path) -> None:
-        p = Path(path)
-        tmp = p.with_name(p.name + ".tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=2) + "\n")
-        tmp.replace(p)
+        from ..files import atomic_write  # the package's one writer
+
+        atomic_write(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> Truth:

@@ -19,7 +19,6 @@ import contextlib
 import csv
 import json
 import math
-import os
 import queue
 import signal
 import sys
@@ -70,19 +69,9 @@ class LiveResult(OnlineResult):
 def write_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` so that a crash at any moment leaves the old or the new file: PATH.tmp,
     fsync, os.replace, then fsync of the directory (the rename itself made durable)."""
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, p)
-    with contextlib.suppress(OSError):  # not every platform/filesystem lets a directory be opened
-        fd = os.open(p.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    from ..files import atomic_write  # the package's one writer (callers here handle its OSError)
+
+    atomic_write(path, text, oserror=True)
 
 
 def load_checkpoint(path: str | Path) -> tuple[dict[str, Any], OnlineCalibrator]:

@@ -1,0 +1,91 @@
+"""The health verdict against the truth, on simulated paper and flight sessions (issue 12, Numbers).
+
+For each profile and seed: the batch result and the UKF replay started from it, each judged by
+:func:`onlinecal.health.assess` exactly as the command line does (NIS, events, observability, mag coverage),
+and compared with the truth: the largest |estimate − truth| / σ over every term that has a σ and that the
+data determined. A result is *bad* when that exceeds 5 or its NIS is out of band; the table counts both
+directions: bad results the verdict called ok (missed) and good results it did not call ok (false alarms).
+
+    python benchmarks/bench_health.py [--seeds 4] [--profiles paper,flight]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+import numpy as np
+
+from onlinecal.batch import run_batch
+from onlinecal.batch.ellipsoid import FitError
+from onlinecal.health import NIS_DOF, NIS_OK, assess
+from onlinecal.model import PARAMS, SENSORS, Calibration
+from onlinecal.sim import simulate
+from onlinecal.ukf import replay
+
+
+def worst_z(est: Calibration, truth: Calibration, undetermined: list[str]) -> tuple[float, str]:
+    """Largest |est − truth| / σ over terms with a σ that the data determined; and its name."""
+    best, name = 0.0, ""
+    for s in SENSORS:
+        e, t = est.sensor(s), truth.sensor(s)
+        if e is None or t is None:
+            continue
+        for p in PARAMS:
+            sig = e.sigma.get(p)
+            if sig is None or f"{s}.{p}" in undetermined:
+                continue
+            for i, a in enumerate("xyz"):
+                if f"{s}.{p}.{a}" in undetermined:
+                    continue
+                sg = float(np.asarray(sig)[i])
+                if sg > 0 and np.isfinite(sg):
+                    z = abs(float(e.params()[p][i] - t.params()[p][i])) / sg
+                    if z > best:
+                        best, name = z, f"{s}.{p}.{a}"
+    return best, name
+
+
+def nis_out(h: dict[str, Any]) -> bool:
+    lo, hi = NIS_OK[0] * NIS_DOF, NIS_OK[1] * NIS_DOF
+    return any(v.get("mean") is not None and not lo <= v["mean"] <= hi for v in h["checks"].get("nis", {}).values())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--profiles", default="paper,flight")
+    a = ap.parse_args()
+    tally: dict[tuple[str, str], dict[str, int]] = {}
+    print(f"{'profile':<7} {'seed':>4} {'stage':<6} {'verdict':<9} {'worst z':>8} {'term':<16} {'NIS out':>7}  reasons")
+    for prof in a.profiles.split(","):
+        for seed in range(a.seeds):
+            sim = simulate(prof, seed)
+            truth = sim.truth.calibration
+            mag = sim.data.mag if sim.data.n_mag else None
+            t0 = time.perf_counter()
+            try:
+                b = run_batch([sim.data])
+            except FitError as e:
+                print(f"{prof:<7} {seed:>4} batch  FitError {e}")
+                continue
+            results = [("batch", b.calibration, assess(b.calibration, mag_raw=mag))]
+            r = replay([sim.data], b.calibration)
+            results.append(("online", r.calibration, assess(r.calibration, nis=r.nis, events=r.events,
+                                                           observability=r.observability, mag_raw=mag)))
+            for stage, cal, h in results:
+                z, term = worst_z(cal, truth, h["checks"].get("undetermined", []))
+                bad = z > 5 or nis_out(h)
+                t = tally.setdefault((prof, stage), {"good_ok": 0, "good_not_ok": 0, "bad_ok": 0, "bad_not_ok": 0})
+                t[f"{'bad' if bad else 'good'}_{'ok' if h['verdict'] == 'ok' else 'not_ok'}"] += 1
+                print(f"{prof:<7} {seed:>4} {stage:<6} {h['verdict']:<9} {z:>8.1f} {term:<16} {str(nis_out(h)):>7}  "
+                      + " | ".join(r_[:70] for r_ in h["reasons"]), flush=True)
+            print(f"        ({time.perf_counter() - t0:.0f} s)", flush=True)
+    print("\nprofile stage   good→ok good→not-ok (false alarm)  bad→not-ok bad→ok (missed)")
+    for (prof, stage), t in tally.items():
+        print(f"{prof:<7} {stage:<7} {t['good_ok']:>7} {t['good_not_ok']:>25} {t['bad_not_ok']:>11} {t['bad_ok']:>15}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,306 @@
+"""Health verdict of a calibration result: ``ok | degraded | failed``, with the reasons in words.
+
+A result is judged on what can be checked without the truth:
+
+* **physical ranges** (:func:`range_checks`): gyro and accelerometer scale factors within [0.5, 2]; the
+  magnetometer's axis scales within a factor 3 of each other (eq. 17 maps the field to the unit sphere, so
+  its absolute scale is 1 / field in the raw unit, but a soft-iron ratio beyond 3 is no real magnetometer);
+  a hard-iron bias at most 10× the field (‖M (−o)‖ ≤ 10 in the field's unit); |ξ| below 0.5 rad (the
+  non-orthogonality of eq. 6 is a fraction of a degree in real sensors; ±π/2 is a degenerate decomposition);
+  gyro bias below 1 rad/s and accelerometer bias below 3 m/s². Out of range → **failed**.
+* **consistency** of the online filter (:func:`nis_checks`): the mean normalised innovation squared per
+  sensor against its expectation, the measurement dimension d = 3 (a chi-square mean). Outside
+  [d/2, 2d] → **degraded** (the noise model does not describe the data: the σ are not to be trusted), above
+  10 d → **failed** (the estimate does not describe the data at all).
+* **divergences** and **saturation** events of the filter → **degraded**, each counted in words.
+* **coverage** of the magnetometer data (:func:`mag_coverage`), when the raw samples are given: the
+  share of 32 equal direction cells on the calibrated unit sphere that hold samples. Below 40 % → the
+  ellipsoid fit (eq. 17) extrapolates and its bias and scale can be far further off than their σ →
+  **degraded**.
+* **terms the data did not determine** (the filter's posterior σ above ½ its prior σ; a batch term
+  without σ) are listed as *notes*: they keep their start value and wide σ, which is honest, not wrong.
+
+The verdict is a plain JSON-serialisable dict (:func:`assess`); the command line prints it, writes it as the
+top-level ``"health"`` key of every result JSON, and maps it to the exit status (:data:`EXIT_STATUS`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+from .model import SENSORS, Calibration
+
+HEALTH_SCHEMA = "onlinecal.health/1"
+VERDICTS = ("ok", "degraded", "failed")
+# Exit status of a command whose result has this verdict (2: unusable input, 3: missing component).
+EXIT_STATUS = {"ok": 0, "degraded": 4, "failed": 5}
+
+SCALE_RANGE = {"gyro": (0.5, 2.0), "accel": (0.5, 2.0)}
+MAG_SCALE_RATIO_MAX = 3.0
+MAG_BIAS_FIELDS_MAX = 10.0
+XI_MAX = 0.5  # rad
+BIAS_MAX = {"gyro": 1.0, "accel": 3.0}  # rad/s, m/s²
+NIS_DOF = 3
+NIS_OK = (0.5, 2.0)  # × dof: the mean NIS of a consistent filter
+NIS_FAILED = 10.0  # × dof
+NIS_MIN_WINDOWS = 3  # for the degraded band; one window far above 10 d already fails
+GATE_DEGRADED = 0.10  # share of a sensor's updates rejected by the filter's gate
+GATE_FAILED = 0.40
+RAIL_MIN = {"gyro": 1.0, "accel": 19.6}  # rad/s, m/s²: no rail is below (250 °/s gyros, 2 g accels)
+RAIL_SAMPLES = 10  # samples at an axis' largest magnitude that make it a rail, not a peak
+UNDETERMINED_RATIO = 0.5  # posterior σ / prior σ above this: the data did not determine the term
+COVERAGE_MIN = 0.4
+COVERAGE_CELLS = 32
+COVERAGE_MIN_SAMPLES = 3  # per cell
+
+
+def _worst(a: str, b: str) -> str:
+    return a if VERDICTS.index(a) >= VERDICTS.index(b) else b
+
+
+def range_checks(cal: Calibration) -> list[tuple[str, str]]:
+    """(verdict, reason) for every parameter outside its physical range (see the module doc)."""
+    out: list[tuple[str, str]] = []
+    for s in SENSORS:
+        c = cal.sensor(s)
+        if c is None:
+            continue
+        try:
+            scale, xi = np.asarray(c.scale), np.asarray(c.xi)
+        except (ValueError, np.linalg.LinAlgError):
+            out.append(("failed", f"{s}: the matrix has no decomposition into scale, rotation and "
+                                  "non-orthogonality (eqs. 2-6)"))
+            continue
+        if s in SCALE_RANGE:
+            lo, hi = SCALE_RANGE[s]
+            bad = [f"{a} {v:.4g}" for a, v in zip("xyz", scale, strict=True) if not lo <= abs(v) <= hi]
+            if bad:
+                out.append(("failed", f"{s}: scale {', '.join(bad)} outside the physical range [{lo}, {hi}]"))
+            b = float(np.abs(c.bias).max())
+            if b > BIAS_MAX[s]:
+                unit = "rad/s" if s == "gyro" else "m/s²"
+                out.append(("failed", f"{s}: bias {b:.4g} {unit} larger than any working sensor's "
+                                      f"(≤ {BIAS_MAX[s]:g} {unit})"))
+        else:
+            a = np.abs(scale)
+            if a.min() <= 0 or a.max() / a.min() > MAG_SCALE_RATIO_MAX:
+                out.append(("failed", f"mag: axis scales {np.array2string(scale, precision=4)} differ by more "
+                                      f"than a factor {MAG_SCALE_RATIO_MAX:g}: not a magnetometer's soft iron"))
+            hard = float(np.linalg.norm(c.matrix @ c.bias))
+            if hard > MAG_BIAS_FIELDS_MAX:
+                out.append(("failed", f"mag: hard-iron bias {hard:.3g}× the local field (at most "
+                                      f"{MAG_BIAS_FIELDS_MAX:g}× on a vehicle)"))
+        big = [f"{a} {v:+.3f}" for a, v in zip("xyz", xi, strict=True) if abs(v) > XI_MAX]
+        if big:
+            out.append(("failed", f"{s}: non-orthogonality ξ {', '.join(big)} rad beyond {XI_MAX} rad "
+                                  "(real sensing axes are orthogonal to a fraction of a degree)"))
+    return out
+
+
+def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+    """(verdict, reason) per sensor whose mean NIS is out of [d/2, 2d] (degraded) or above 10 d (failed),
+    and the per-sensor figures."""
+    out: list[tuple[str, str]] = []
+    figs: dict[str, Any] = {}
+    if not nis:
+        return out, figs
+    lo, hi = NIS_OK[0] * NIS_DOF, NIS_OK[1] * NIS_DOF
+    for s, st in nis.items():
+        if not isinstance(st, dict):  # "band", "events_total": figures, not a sensor
+            continue
+        raw_m, w = st.get("mean"), int(st.get("windows") or 0)
+        gate = _gate_check(s, st)
+        if gate is not None:
+            out.append(gate)
+        m = float(raw_m) if isinstance(raw_m, (int, float)) else math.nan
+        if not math.isfinite(m) or (w < NIS_MIN_WINDOWS and not (w >= 1 and m > NIS_FAILED * NIS_DOF)):
+            figs[s] = {"mean": m if math.isfinite(m) else None, "windows": w, "expected": NIS_DOF,
+                       "status": "too few updates"}
+            continue
+        status = "ok"
+        if m > NIS_FAILED * NIS_DOF:
+            status = "failed"
+            out.append(("failed", f"{s}: mean NIS {m:.4g} against {NIS_DOF} expected: the calibration does not "
+                                  "describe the data"))
+        elif not lo <= m <= hi:
+            status = "degraded"
+            how = "the data scatter more than the model allows" if m > hi else "the noise is overstated"
+            out.append(("degraded", f"{s}: mean NIS {m:.3g} outside [{lo:g}, {hi:g}] ({NIS_DOF} expected): {how}; "
+                                    "its σ are not to be trusted"))
+        figs[s] = {"mean": m, "windows": w, "expected": NIS_DOF, "band": [lo, hi], "status": status}
+    return out, figs
+
+
+def _gate_check(sensor: str, st: dict[str, Any]) -> tuple[str, str] | None:
+    """A sensor whose updates the filter's outlier gate rejected in large numbers: the model and the data
+    disagree (a consistent filter rejects about one in a thousand)."""
+    up, rej = int(st.get("updates") or 0), int(st.get("rejected") or 0)
+    if up + rej < 20 or rej == 0:
+        return None
+    share = rej / (up + rej)
+    if share > GATE_FAILED:
+        return ("failed", f"{sensor}: the filter's gate rejected {rej} of {up + rej} updates ({100 * share:.0f} %): "
+                          "the calibration does not describe the data")
+    if share > GATE_DEGRADED:
+        return ("degraded", f"{sensor}: the filter's gate rejected {rej} of {up + rej} updates ({100 * share:.0f} %)")
+    return None
+
+
+def rail_checks(raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, int]]:
+    """Saturation seen in the raw samples (``raw``: sensor → (N, 3)): an axis whose largest magnitude,
+    above :data:`RAIL_MIN`, recurs in at least :data:`RAIL_SAMPLES` samples is at its rail (a true peak is
+    reached once) → degraded, whether or not the filter raised an event."""
+    out: list[tuple[str, str]] = []
+    counts: dict[str, int] = {}
+    for s, x in (raw or {}).items():
+        if x is None or s not in RAIL_MIN:
+            continue
+        a = np.abs(np.asarray(x, float).reshape(-1, 3))
+        a = np.where(np.isfinite(a), a, 0.0)
+        if a.shape[0] == 0:
+            continue
+        top = a.max(axis=0)
+        at = (a >= top * (1 - 1e-9)) & (top > RAIL_MIN[s])
+        rail = at.sum(axis=0) >= RAIL_SAMPLES  # axes pinned at their largest magnitude, not a lone peak
+        n = int(at[:, rail].any(axis=1).sum()) if rail.any() else 0
+        if n:
+            counts[s] = n
+            axes = ", ".join(f"{'xyz'[k]} ±{top[k]:.4g}" for k in range(3) if rail[k])
+            out.append(("degraded", f"{s}: {n} samples at the sensor's rail ({axes}): clipped readings "
+                                    "(saturation) bias every term they enter"))
+    return out, counts
+
+
+def event_checks(events: Iterable[dict[str, Any]] | None) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+    """Divergences (the filter re-initialised) and saturation (a sensor at its rail) → degraded."""
+    evs = [e for e in (events or []) if isinstance(e, dict)]
+    div = [e for e in evs if e.get("kind") == "divergence"]
+    sat = [e for e in evs if e.get("kind") == "saturation"]
+    out: list[tuple[str, str]] = []
+    if div:
+        last = div[-1]
+        out.append(("degraded", f"the filter diverged {len(div)} time(s) and was re-initialised (last at "
+                                f"t = {float(last.get('t', math.nan)):.1f} s: {last.get('detail', '')})"))
+    if sat:
+        sens = sorted({str(e.get("detail", "")).split(" ")[0] for e in sat})
+        out.append(("degraded", f"{len(sat)} stretch(es) of {', '.join(sens)} readings at the sensor's rail "
+                                "(saturation): those samples carry no calibration information"))
+    return out, {"divergences": len(div), "saturation": len(sat)}
+
+
+def mag_coverage(mag_cal: Any, cells: int = COVERAGE_CELLS) -> float:
+    """Share of ``cells`` equal-area direction cells (Fibonacci centres, nearest-centre assignment) that hold
+    at least :data:`COVERAGE_MIN_SAMPLES` of the calibrated magnetometer directions ``mag_cal`` (M, 3)."""
+    m = np.asarray(mag_cal, float).reshape(-1, 3)
+    n = np.linalg.norm(m, axis=1)
+    m = m[np.isfinite(n) & (n > 0)]
+    if m.shape[0] == 0:
+        return 0.0
+    u = m / np.linalg.norm(m, axis=1, keepdims=True)
+    i = np.arange(cells) + 0.5
+    z = 1.0 - 2.0 * i / cells
+    r = np.sqrt(1.0 - z * z)
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    centres = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    k = np.argmax(u @ centres.T, axis=1)
+    counts = np.bincount(k, minlength=cells)
+    return float(np.mean(counts >= COVERAGE_MIN_SAMPLES))
+
+
+def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -> list[str]:
+    """Terms the data did not determine: posterior σ / prior σ > ½ (the filter's observability), or, with
+    no observability, a term without σ of a sensor that has σ for others (the batch left it at its start
+    value)."""
+    if observability:
+        return sorted(k for k, v in observability.items()
+                      if isinstance(v, dict) and isinstance(v.get("ratio"), (int, float))
+                      and math.isfinite(v["ratio"]) and v["ratio"] > UNDETERMINED_RATIO
+                      and k.split(".")[0] in SENSORS and cal.sensor(k.split(".")[0]) is not None)
+    out = []
+    for s in SENSORS:
+        c = cal.sensor(s)
+        if c is None or not c.sigma:  # no σ at all (a truth or hand-written file): unknown, not undetermined
+            continue
+        for p in ("bias", "scale", "alpha", "xi"):
+            sig = c.sigma.get(p)
+            if sig is None or not np.all(np.isfinite(np.asarray(sig, float))):
+                out.append(f"{s}.{p}")
+    return out
+
+
+def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Sequence[dict[str, Any]] | None = None,
+           observability: dict[str, Any] | None = None, mag_raw: Any = None,
+           raw: dict[str, Any] | None = None, warnings: Sequence[str] = ()) -> dict[str, Any]:
+    """The health verdict of ``cal`` (see the module doc).
+
+    ``nis`` and ``events`` default to ``cal.meta["online"]`` (an online result); ``observability``: the
+    filter's per-term posterior/prior σ ratio; ``mag_raw`` (M, 3): the raw magnetometer samples the result
+    was fitted on, for the coverage check; ``raw``: sensor → raw samples (N, 3) for the rail check
+    (:func:`rail_checks`); ``warnings``: the fit's own warnings (kept as notes).
+    Returns ``{"schema", "verdict", "reasons", "notes", "checks"}``.
+    """
+    online = cal.meta.get("online", {}) if isinstance(cal.meta, dict) else {}
+    if nis is None and isinstance(online, dict):
+        nis = online.get("nis")
+    if events is None and isinstance(online, dict):
+        events = online.get("events")
+    found: list[tuple[str, str]] = []
+    checks: dict[str, Any] = {}
+    ranges = range_checks(cal)
+    found += ranges
+    checks["ranges"] = [r for _, r in ranges]
+    nf, checks["nis"] = nis_checks(nis)
+    found += nf
+    ef, ev = event_checks(events)
+    found += ef
+    checks.update(ev)
+    rf, rails = rail_checks(raw)
+    if not ev.get("saturation"):  # the filter's own saturation event already says it
+        found += rf
+    checks["rail_samples"] = rails
+    notes: list[str] = []
+    if mag_raw is not None and cal.mag is not None:
+        try:
+            cov = mag_coverage(cal.mag.apply(np.asarray(mag_raw, float).reshape(-1, 3)))
+        except (ValueError, TypeError):
+            cov = None
+        checks["mag_coverage"] = cov
+        if cov is not None and cov < COVERAGE_MIN:
+            found.append(("degraded", f"mag: the samples point in only {100 * cov:.0f} % of directions (need "
+                                      f"{100 * COVERAGE_MIN:.0f} %): the ellipsoid fit (eq. 17) extrapolates and "
+                                      "its bias and scales can be off by far more than their σ"))
+    und = undetermined_terms(cal, observability)
+    checks["undetermined"] = und
+    if und:
+        notes.append("not determined by the data (start value kept, σ wide): " + ", ".join(und))
+    notes += [w for w in warnings if w not in notes]
+    verdict = "ok"
+    for v, _ in found:
+        verdict = _worst(verdict, v)
+    return {"schema": HEALTH_SCHEMA, "verdict": verdict, "reasons": [r for _, r in found], "notes": notes,
+            "checks": checks}
+
+
+def combine(verdicts: Iterable[dict[str, Any] | None]) -> str:
+    """The worst verdict of several (a missing one counts as ok)."""
+    out = "ok"
+    for h in verdicts:
+        if h:
+            out = _worst(out, str(h.get("verdict", "ok")))
+    return out
+
+
+def exit_status(health: dict[str, Any] | None) -> int:
+    """0 ok, 4 degraded, 5 failed (:data:`EXIT_STATUS`)."""
+    return EXIT_STATUS.get(str((health or {}).get("verdict", "ok")), 0)
+
+
+def summary_lines(health: dict[str, Any], what: str = "result") -> list[str]:
+    """Lines for the terminal: ``health: degraded`` then one line per reason (and per note, indented)."""
+    lines = [f"health of the {what}: {health['verdict']}"]
+    lines += [f"  - {r}" for r in health.get("reasons", [])]
+    return lines

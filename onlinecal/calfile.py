@@ -17,11 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from .model import SCHEMA, SENSORS, Calibration
+from .model import SCHEMA, SCHEMAS_READ, SENSORS, Calibration
 
 TRUTH_SCHEMA = "onlinecal.truth/1"
 # Schemas this reader accepts for a calibration (the /2 of the typed health field reads the same keys).
-CAL_SCHEMAS = (SCHEMA, "onlinecal.calibration/2")
+CAL_SCHEMAS = SCHEMAS_READ
 MAX_BYTES = 64 * 1024 * 1024  # a calibration is a few kB; anything this large is not one
 # Largest |bias| any sensor's raw unit can hold plausibly (rad/s, m/s², gauss or a CSV's fixed unit such as
 # µT or counts): beyond it the number is junk, and a filter started from it never converges.
@@ -175,10 +175,10 @@ def calibration_from_obj(obj: Any, path: str = "calibration") -> Calibration:
             validate_extensions(obj["extensions"])
         except (ValueError, TypeError, KeyError) as e:
             raise CalFileError(f"{path}: extensions: {e}") from None
-    d = {**obj, **sensors, "schema": SCHEMA}
-    health = obj.get("health")
-    if isinstance(health, dict) and not (isinstance(obj.get("meta"), dict) and "health" in obj["meta"]):
-        d["meta"] = {**(obj.get("meta") or {}), "health": health}  # the verdict travels with the calibration
+    d = {**obj, **sensors}  # the schema as read: /1 is migrated by Calibration.from_dict
+    meta = obj.get("meta")
+    if obj.get("health") is None and isinstance(meta, dict) and isinstance(meta.get("health"), dict):
+        d["health"] = meta["health"]  # an older file kept the verdict in meta: it becomes the typed field
     try:
         return Calibration.from_dict(d)
     except (ValueError, TypeError, KeyError) as e:  # pragma: no cover - the checks above come first

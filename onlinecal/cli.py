@@ -105,14 +105,12 @@ def _human(json_path: str | None) -> Any:
 
 
 def _save_result(cal: Any, health: dict[str, Any] | None, path: str) -> None:
-    """Write ``cal`` as strict JSON with its health verdict (``meta.health`` and a top-level ``health``)."""
+    """Write ``cal`` as strict JSON with its health verdict (the calibration's typed ``health`` field)."""
     from .files import OutputError, write_json
 
     if health is not None:
-        cal = cal.replace(meta={**cal.meta, "health": health})
+        cal = cal.replace(health=health)
     obj = cal.to_dict()
-    if health is not None:
-        obj["health"] = health
     try:
         write_json(path, obj)
     except OutputError as e:
@@ -565,7 +563,7 @@ def cmd_export(a: argparse.Namespace) -> int:
     side = None if out == "-" else out + ".export.json"
     _check_out(out, "--out")
     _check_out(side, "--out")
-    health = cal.meta.get("health") if isinstance(cal.meta.get("health"), dict) else None
+    health = dict(cal.health) if cal.health is not None else None
     try:
         exp = export_calibration(cal, a.format, a.mag_unit, onboard=onboard, force=a.force, health=health)
     except ExportError as e:

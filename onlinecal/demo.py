@@ -41,8 +41,7 @@ def _plots(out: Path, data, batch: Calibration) -> list[str]:
 
 
 def _save(cal: Calibration, health: dict[str, Any], path: Path) -> None:
-    obj = cal.replace(meta={**cal.meta, "health": health}).to_dict()
-    obj["health"] = health
+    obj = cal.replace(health=health).to_dict()
     atomic_write(path, dumps(obj) + "\n")
 
 

@@ -124,8 +124,7 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
 
         health = assess(res.calibration, nis=res.nis, events=res.events, observability=res.observability,
                         mag_raw=d.mag if d.n_mag else None, raw={"gyro": d.gyro, "accel": d.acc})
-        rec["calibration"] = {**res.calibration.replace(meta={**res.calibration.meta, "health": health}).to_dict(),
-                              "health": health}
+        rec["calibration"] = res.calibration.replace(health=health).to_dict()
         rec["health"] = health
         rec["warnings"] = list(dict.fromkeys(warnings))
         # a calibration that failed its health check is no result: it is kept out of the drift summary

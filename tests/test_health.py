@@ -203,7 +203,7 @@ def test_truth_file_reads_as_its_calibration(tmp_path: Path) -> None:
 
 def test_health_travels_with_the_file(tmp_path: Path) -> None:
     d = dict(VALID, health={"verdict": "degraded", "reasons": ["mag: x"]})
-    assert load_calibration(_write(tmp_path, json.dumps(d))).meta["health"]["verdict"] == "degraded"
+    assert load_calibration(_write(tmp_path, json.dumps(d))).health["verdict"] == "degraded"
 
 
 # -- 2. guarded export and composition -------------------------------------------------------------------

@@ -18,7 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from ..model import SensorCalibration, decompose
+from ..model import SensorCalibration
+from .decomp import decompose_many
 from .ellipsoid import FitError
 from .segment import Interval, Phase, Segmentation
 from .sensors import StepReport, sqrt_psd
@@ -96,17 +97,15 @@ def phase_matrix_sigma(axes: dict[int, tuple[Array, float, float]], scales: dict
     """σ of (scale, alpha, xi) (9,) of the phase method's matrix G = [c_k u_k]⁻¹ (eqs. 28–31, 36), by
     drawing each axis direction u_k within its σ (:func:`gyro_axes_from_phases`) and each c_k = 1/scale
     within ``scale_sd`` (3,), and decomposing (eqs. 2–6). Needs all three axes."""
-    out = []
-    for _ in range(draws):
-        cols = []
-        for k in range(3):
-            u, _, sd = axes[k]
-            e = rng.standard_normal(3) * sd
-            u2 = u + e - (e @ u) * u
-            s_k = scales[k] ** -1 + rng.standard_normal() * scale_sd[k]  # scales holds c = 1/scale
-            cols.append(u2 / np.linalg.norm(u2) / s_k)
-        out.append(np.concatenate(decompose(np.linalg.inv(np.column_stack(cols)))))
-    return np.std(out, axis=0)
+    mats = np.empty((draws, 3, 3))
+    for k in range(3):
+        u, _, sd = axes[k]
+        e = rng.standard_normal((draws, 3)) * sd
+        u2 = u + e - np.outer(e @ u, u)
+        s_k = scales[k] ** -1 + rng.standard_normal(draws) * scale_sd[k]  # scales holds c = 1/scale
+        mats[:, :, k] = u2 / np.linalg.norm(u2, axis=1, keepdims=True) / s_k[:, None]
+    par, ok = decompose_many(np.linalg.inv(mats))
+    return np.std(par[ok], axis=0)
 
 
 def _static_before_after(seg: Segmentation, iv: Interval) -> tuple[Interval, Interval] | None:
@@ -370,9 +369,8 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     sigma: dict[str, list[float]] = {"bias": sig_o.tolist()}
     if np.all(np.isfinite(cov)):
         L = sqrt_psd(cov)
-        draws = [np.concatenate(decompose((G.ravel() + L @ rng.standard_normal(9)).reshape(3, 3)))
-                 for _ in range(48)]
-        sd = np.std(draws, axis=0)
+        par, ok = decompose_many((G.ravel() + rng.standard_normal((48, 9)) @ L.T).reshape(-1, 3, 3))
+        sd = np.std(par[ok], axis=0)
         if G is G_paper and not missing:
             sd[3:] = phase_matrix_sigma(axes, scales, sd[:3], rng)[3:]
             rep.figures["sigma_angles"] = "phase scatter (eqs. 28-31)"

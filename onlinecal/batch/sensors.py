@@ -8,12 +8,18 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ..model import SensorCalibration, decompose
+from ..model import SensorCalibration
 from .align import phase_plane_normal, rotation_to_axes
-from .ellipsoid import FitError, NormFit, fit_ellipsoid_svd, fit_norm_lm, sqrtm_spd, sym_from_vec
+from .decomp import decompose_many
+from .ellipsoid import FitError, NormFit, fit_ellipsoid_svd, fit_norm_lm, sphere_bin_weights, sqrtm_spd
 from .segment import Phase, Segmentation, moving_std
 
 Array = NDArray[np.float64]
+
+_IU = np.triu_indices(3)
+# Generators of so(3): a @ _SKEW = [a]×.
+_SKEW = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]], [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
+                  [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], float)
 
 
 @dataclass
@@ -43,17 +49,14 @@ def propagate_sigma(
         return {"bias": np.sqrt(np.abs(np.diag(cov9))[:3]).tolist()}
     L = sqrt_psd(cov9)
     p0 = np.concatenate([o, M[np.triu_indices(3)]])
-    draws = []
-    for _ in range(n):
-        p = p0 + L @ rng.standard_normal(9)
-        a = rng.normal(0, sig_align, 3)
-        Ra = np.eye(3) + np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-        try:
-            s, al, xi = decompose(Ra @ Q @ sym_from_vec(p[3:]))
-        except ValueError:
-            continue
-        draws.append(np.concatenate([p[:3], s, al, xi]))
-    d = np.array(draws)
+    p = p0 + rng.standard_normal((n, 9)) @ L.T
+    a = rng.normal(0, sig_align, (n, 3))
+    Ra = np.eye(3) + np.einsum("nk,kij->nij", a, _SKEW)
+    Ms = np.zeros((n, 3, 3))
+    Ms[:, _IU[0], _IU[1]] = p[:, 3:]
+    Ms = Ms + np.triu(Ms, 1).transpose(0, 2, 1)
+    par, ok = decompose_many(Ra @ Q @ Ms)  # closed form, all draws at once
+    d = np.concatenate([p[ok, :3], par[ok]], axis=1)
     sd = d.std(axis=0)
     return {"bias": sd[:3].tolist(), "scale": sd[3:6].tolist(), "alpha": sd[6:9].tolist(),
             "xi": sd[9:12].tolist()}
@@ -112,32 +115,100 @@ def _acc_samples(seg: Segmentation, ph: Phase) -> Array:
     return _lpf(seg.data.acc[ph.i0 : ph.i1], w)
 
 
+def _runs_text(t: Array, bad: Array, gap: float = 1.0) -> tuple[int, str]:
+    """Stretches of ``bad`` samples (times t) merged across gaps < ``gap`` s: (count, "t0–t1 s, …")."""
+    tb = t[bad]
+    if tb.size == 0:
+        return 0, ""
+    cut = np.flatnonzero(np.diff(tb) > gap)
+    starts = np.concatenate([[tb[0]], tb[cut + 1]])
+    ends = np.concatenate([tb[cut], [tb[-1]]])
+    txt = ", ".join(f"{a:.1f}–{b:.1f} s" for a, b in list(zip(starts, ends, strict=True))[:5])
+    return int(starts.size), txt + (" …" if starts.size > 5 else "")
+
+
 def fit_magnetometer(
-    segs: list[Segmentation], rng: np.random.Generator
+    segs: list[Segmentation], rng: np.random.Generator, field_tol: float = 0.05,
 ) -> tuple[SensorCalibration, StepReport]:
     """Magnetometer: SVD ellipsoid fit (eqs. 19–24) → LM on eq. 17 → T_R,mag from phases (eqs. 25–27).
 
-    Every mag sample of every log counts for the ellipsoid; the field norm is 1 by definition.
+    The field norm is 1 by definition. Samples are weighted by attitude coverage
+    (:func:`~onlinecal.batch.ellipsoid.sphere_bin_weights`, 10° cells, at most 30 samples per cell): a
+    10-minute rest counts as one attitude, and the fit's work is bounded whatever the log's length.
+    A file whose median calibrated norm differs from 1 by more than ``field_tol`` (another place, a
+    disturbance that lasts the whole file) is named in a warning and kept out of the shape fit; samples
+    beyond 5 MAD of the norm residual (a passing disturbance, a corrupt reading) are excluded and counted.
     """
     rep = StepReport("mag")
-    x = np.concatenate([s.data.mag for s in segs if s.data.has_mag])
+    with_mag = [s for s in segs if s.data.has_mag]
+    xs = [s.data.mag for s in with_mag]
+    x = np.concatenate(xs) if xs else np.zeros((0, 3))
+    fid = np.concatenate([np.full(len(v), i) for i, v in enumerate(xs)]) if xs else np.zeros(0, int)
+    tt = np.concatenate([s.data.t_mag for s in with_mag]) if xs else np.zeros(0)
     if x.shape[0] < 50:
         raise FitError(f"magnetometer: only {x.shape[0]} samples")
+    lo, hi = np.percentile(x, [1, 99], axis=0)
+    w0 = sphere_bin_weights(x - 0.5 * (lo + hi), per_bin=30)
     # An ellipsoid needs the field seen from directions spanning 3-D: a rest (a point) or a turn
     # about one axis (a circle) leaves it undetermined, and LM would return a degenerate answer.
-    ev = np.linalg.eigvalsh(np.cov(x.T))
+    sel = w0 > 0
+    ev = np.linalg.eigvalsh(np.cov(x[sel].T, aweights=w0[sel]))
     spread = float(np.sqrt(max(ev[0], 0.0)) / np.median(np.linalg.norm(x, axis=1)))
     if spread < 0.05:
         raise FitError(f"magnetometer: the field was seen from too few directions (least spread "
                        f"{100 * spread:.1f} % of the reading, need 5 %); turn the unit through all orientations")
-    o0, M0 = fit_ellipsoid_svd(x)
-    fit = fit_norm_lm(x, 1.0, o0, M0)
+    use = np.ones(x.shape[0], bool)
+    excluded: list[str] = []
+    for _ in range(3):
+        xu = x[use]
+        lo, hi = np.percentile(xu, [1, 99], axis=0)
+        w = sphere_bin_weights(xu - 0.5 * (lo + hi), per_bin=30)
+        o0, M0 = fit_ellipsoid_svd(xu, w)
+        w = sphere_bin_weights((xu - o0) @ M0.T, per_bin=30)
+        fit = fit_norm_lm(xu, 1.0, o0, M0, weights=w)
+        nrm_all = np.linalg.norm((x - fit.o) @ fit.M.T, axis=1)
+        # Per-file field strength: a file whose field differs is named and left out of the shape fit.
+        off = []
+        for i in range(len(with_mag)):
+            m = fid == i
+            med = float(np.median(nrm_all[m])) if m.any() else 1.0
+            if use[m].any() and abs(med - 1.0) > field_tol:
+                off.append((i, med))
+        if not off or use.sum() - sum((fid == i).sum() for i, _ in off) < 50:
+            break
+        worst = max(off, key=lambda v: abs(v[1] - 1))  # one at a time: a bad file distorts the others
+        use &= fid != worst[0]
+        excluded.append(f"{with_mag[worst[0]].data.source}: field {100 * (worst[1] - 1):+.0f} % against the other "
+                        "files (another place or a lasting disturbance); left out of the magnetometer fit")
+    rep.warnings += [f"mag: {e}" for e in excluded]
     Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
     M = Q @ fit.M
-    norms = np.linalg.norm((x[fit.inliers] - fit.o) @ M.T, axis=1)
+    res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0
+    r_in = res[use]
+    mad = 1.4826 * float(np.median(np.abs(r_in - np.median(r_in))))
+    bad = use & (np.abs(res) > max(5 * mad, 0.02))
+    if bad.any():
+        n_str, txt = _runs_text(tt, bad)
+        rep.warnings.append(f"mag: {int(bad.sum())} samples whose field norm is off by more than "
+                            f"{100 * max(5 * mad, 0.02):.1f} % (disturbance or corrupt readings) excluded, "
+                            f"in {n_str} stretch{'es' if n_str > 1 else ''}: {txt}")
+        if bad[use].mean() > 0.01:
+            # Refit without them (the binned fit saw them at a low weight; a long disturbance
+            # should not bend the shape).
+            keep = use & ~bad
+            w = sphere_bin_weights((x[keep] - fit.o) @ fit.M.T, per_bin=30)
+            fit = fit_norm_lm(x[keep], 1.0, fit.o, fit.M, weights=w)
+            Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
+            M = Q @ fit.M
+            res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0
+    good = use & ~bad
+    norms = res[good] + 1.0
     rep.figures.update({
         "samples": int(x.shape[0]),
-        "outliers": int((~fit.inliers).sum()),
+        "fit_samples": int((w > 0).sum()),
+        "outliers": int(bad.sum()),
+        "files_excluded": len(excluded),
+        "weighting": "attitude bins (10° cells, ≤ 30 samples each)",
         "norm_std_percent": float(100 * norms.std()),
         "raw_norm_std_percent": float(100 * np.linalg.norm(x - x.mean(0), axis=1).std()
                                       / np.linalg.norm(x - x.mean(0), axis=1).mean()),

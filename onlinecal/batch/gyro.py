@@ -70,6 +70,8 @@ def gyro_axes_from_phases(segs: list[Segmentation], o: Array) -> dict[int, tuple
     rows: dict[int, list[Array]] = {}
     for s in segs:
         for ph in s.phases:
+            if s.noisy(ph) and any(q.axis == ph.axis and not s2.noisy(q) for s2 in segs for q in s2.phases):
+                continue  # a noise burst in the middle third would tilt the mean direction
             n = ph.i1 - ph.i0
             a, b = ph.i0 + n // 3, ph.i0 + (2 * n) // 3
             if b - a < 2:
@@ -194,7 +196,7 @@ def gyro_scale_from_phases(segs: list[Segmentation], o: Array, axes: dict[int, t
     den: dict[int, float] = {}
     for s in segs:
         for ph in s.phases:
-            if ph.axis not in axes or s.gapped(ph):
+            if ph.axis not in axes or s.gapped(ph) or s.noisy(ph):
                 continue
             pa = phase_angle(s, ph, acc, mag)
             if pa is None:
@@ -261,7 +263,7 @@ def _collect_transitions(segs: list[Segmentation], o: Array, acc: SensorCalibrat
     pairs = []
     for s in segs:
         for iv in s.motions:
-            if s.gapped(iv):
+            if s.gapped(iv) or s.noisy(iv):
                 continue
             vecs = _vectors(s, acc, mag, iv)
             if not vecs:

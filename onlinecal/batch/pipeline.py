@@ -13,10 +13,18 @@ import numpy as np
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
 from ..sim.motion import G0
+from .clean import clean_log
 from .ellipsoid import FitError
 from .gyro import fit_gyroscope
 from .segment import Segmentation, noise_floors, segment
-from .sensors import StepReport, distinct_directions, fit_accelerometer, fit_magnetometer, static_means
+from .sensors import (
+    StepReport,
+    dip_outliers,
+    distinct_directions,
+    fit_accelerometer,
+    fit_magnetometer,
+    static_means,
+)
 
 
 @dataclass
@@ -51,6 +59,10 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
         raise FitError("no IMU samples in the logs")
     # Reader warnings carry no file name; with several logs of one unit the user must know which one.
     warnings: list[str] = [w if d.source in w else f"{d.source}: {w}" for d in logs for w in d.warnings]
+    cleaned = [clean_log(d) for d in logs]
+    logs = [c.data for c in cleaned]
+    for c in cleaned:
+        warnings += c.warnings
     floors = noise_floors(logs)
     segs = [segment(d, floors) for d in logs]
     # Too few true rests (hand-held campaigns): fall back to quasi-static rests for the fits that need
@@ -70,7 +82,8 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
             for s_strict, s_rel in zip(segs, relaxed, strict=True):
                 s_rel.bias_rests = s_strict.statics
             segs = relaxed
-    for s in segs:
+    for s, c in zip(segs, cleaned, strict=True):
+        s.bursts = c.bursts
         warnings += s.warnings
     warnings = list(dict.fromkeys(warnings))
     steps: dict[str, StepReport] = {}
@@ -86,6 +99,20 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
         acc, steps["accel"] = fit_accelerometer(segs, g, rng)
     except FitError as e:
         warnings.append(f"accel step skipped: {e}")
+    if acc is not None and mag is not None:
+        n_dip, where = dip_outliers(segs, acc, mag)
+        if n_dip:
+            warnings.append(f"mag: {n_dip} samples at {len(where)} rest(s) whose field direction disagrees with "
+                            "the others (a disturbance) excluded and the magnetometer refitted: "
+                            + "; ".join(where[:5]))
+            first = steps["mag"]
+            try:
+                mag, steps["mag"] = fit_magnetometer(segs, rng)
+                steps["mag"].warnings[:0] = first.warnings
+                steps["mag"].figures["outliers"] += first.figures["outliers"] + n_dip
+            except FitError as e:
+                mag = None
+                warnings.append(f"mag step skipped: {e}")
     try:
         gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag, rng)
     except FitError as e:

@@ -68,11 +68,16 @@ class Segmentation:
     max_gap: float
     warnings: list[str] = field(default_factory=list)
     bias_rests: list[Interval] | None = None  # strict rests for the gyro bias when statics are relaxed
+    bursts: list[tuple[int, int]] = field(default_factory=list)  # gyro noise bursts, IMU rows [i0, i1)
 
     @property
     def rests(self) -> list[Interval]:
         """True rests (for the gyro bias): the strict statics even when ``statics`` are quasi-static."""
         return self.statics if self.bias_rests is None else self.bias_rests
+
+    def noisy(self, iv: Interval) -> bool:
+        """True where a gyro noise burst (:func:`~onlinecal.batch.clean.noise_bursts`) overlaps ``iv``."""
+        return any(a < iv.i1 and b > iv.i0 for a, b in self.bursts)
 
     def gapped(self, iv: Interval, factor: float = 5.0) -> bool:
         """True where the logger dropped samples inside ``iv`` (a gap > factor × median period)."""

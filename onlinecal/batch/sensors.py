@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -127,6 +127,49 @@ def _runs_text(t: Array, bad: Array, gap: float = 1.0) -> tuple[int, str]:
     return int(starts.size), txt + (" …" if starts.size > 5 else "")
 
 
+def _close_stretches(t: Array, fid: Array, bad: Array, gap: float) -> Array:
+    """``bad`` with the samples between two bad ones of the same file less than ``gap`` s apart set too:
+    inside a disturbance the norm can pass through its undisturbed value (an added field at the right
+    angle), and those samples are just as wrong."""
+    out = bad.copy()
+    i = np.flatnonzero(bad)
+    if i.size < 2:
+        return out
+    close = (np.diff(t[i]) < gap) & (fid[i[1:]] == fid[i[:-1]]) & (np.diff(i) > 1)
+    for a, b in zip(i[:-1][close], i[1:][close], strict=True):
+        out[a:b] = True
+    return out
+
+
+def dip_outliers(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCalibration,
+                 tol_deg: float = 3.0) -> tuple[int, list[str]]:
+    """Rests whose field direction disagrees with the others: the angle between calibrated gravity and the
+    calibrated field (the dip) is the same at every attitude; a rest whose dip differs by more than
+    ``tol_deg`` from the median (a disturbance whose norm happens to look right) loses its mag samples
+    (``seg.data`` is replaced). Returns (samples removed, one line per rest)."""
+    rows = []
+    for sg in segs:
+        d = sg.data
+        for iv in sg.statics:
+            m = (d.t_mag >= iv.t0) & (d.t_mag <= iv.t1)
+            if m.sum() < 3:
+                continue
+            a = acc.apply(d.acc[iv.i0:iv.i1].mean(0))
+            f = mag.apply(d.mag[m]).mean(0)
+            dip = float(np.degrees(np.arccos(np.clip(a @ f / np.linalg.norm(a) / np.linalg.norm(f), -1, 1))))
+            rows.append((sg, iv, m, dip))
+    if len(rows) < 4:
+        return 0, []
+    med = float(np.median([r[3] for r in rows]))
+    n, lines = 0, []
+    for sg, iv, m, dip in rows:
+        if abs(dip - med) > tol_deg:
+            n += int(m.sum())
+            sg.data = replace(sg.data, t_mag=sg.data.t_mag[~m], mag=sg.data.mag[~m])
+            lines.append(f"{sg.data.source} {iv.t0:.1f}–{iv.t1:.1f} s (dip {dip:.1f}° against {med:.1f}°)")
+    return n, lines
+
+
 def fit_magnetometer(
     segs: list[Segmentation], rng: np.random.Generator, field_tol: float = 0.05,
 ) -> tuple[SensorCalibration, StepReport]:
@@ -137,7 +180,8 @@ def fit_magnetometer(
     10-minute rest counts as one attitude, and the fit's work is bounded whatever the log's length.
     A file whose median calibrated norm differs from 1 by more than ``field_tol`` (another place, a
     disturbance that lasts the whole file) is named in a warning and kept out of the shape fit; samples
-    beyond 5 MAD of the norm residual (a passing disturbance, a corrupt reading) are excluded and counted.
+    beyond 5 MAD of the norm residual (a passing disturbance, a corrupt reading) are excluded and counted,
+    and removed from the segmentations' logs (``seg.data``) so that no later step uses them.
     """
     rep = StepReport("mag")
     with_mag = [s for s in segs if s.data.has_mag]
@@ -187,11 +231,17 @@ def fit_magnetometer(
     r_in = res[use]
     mad = 1.4826 * float(np.median(np.abs(r_in - np.median(r_in))))
     bad = use & (np.abs(res) > max(5 * mad, 0.02))
+    bad = _close_stretches(tt, fid, bad, 3.0) & use
     if bad.any():
         n_str, txt = _runs_text(tt, bad)
         rep.warnings.append(f"mag: {int(bad.sum())} samples whose field norm is off by more than "
                             f"{100 * max(5 * mad, 0.02):.1f} % (disturbance or corrupt readings) excluded, "
                             f"in {n_str} stretch{'es' if n_str > 1 else ''}: {txt}")
+        # The excluded samples leave the logs for every later step too (the gyro's reference vectors).
+        for i, sg in enumerate(with_mag):
+            g_i = ~bad[fid == i]
+            if not g_i.all():
+                sg.data = replace(sg.data, t_mag=sg.data.t_mag[g_i], mag=sg.data.mag[g_i])
         if bad[use].mean() > 0.01:
             # Refit without them (the binned fit saw them at a low weight; a long disturbance
             # should not bend the shape).

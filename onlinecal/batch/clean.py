@@ -6,12 +6,15 @@ rate spike integrated over a rotation phase moves the gyro scale (eq. 36) by ``s
 
 * **Impossible**: beyond any sensor's range (|ω| > 70 rad/s = 4000°/s; ‖a‖ > 50 g) or far from its
   neighbours — a sample that differs from the median of its ±2 neighbours by more than 12 × the log's
-  robust scale of that same difference *and* by more than a physical floor (0.5 rad/s, 4 m/s²; the mag
-  0.3 × its median norm) is a spike, not motion: motion moves neighbours together.
+  robust scale of that same difference *and* by more than a physical floor (2 rad/s, 20 m/s²; the mag
+  0.3 × its median norm), while its neighbours agree with each other, is a spike, not motion: motion
+  (and an impact) moves the neighbours too.
   Such IMU samples are replaced by the mean of their good neighbours (so the time grid and the
   integral of eq. 36 stay continuous); such mag samples are dropped.
 * **Noise burst**: a stretch where the gyro's third difference (which removes any smooth motion) has an
-  RMS over 0.5 s more than 6 × the log's median; eq. 36 skips motions and phases that overlap one.
+  RMS over 0.5 s more than 6 × the log's median and 2.5 × the first difference's (white noise: 3.2,
+  not a hand's jerk) for at least 0.5 s (an impact rings for less); eq. 36 skips motions and phases
+  that overlap one.
 
 Each is counted in a warning naming the file.
 """
@@ -50,12 +53,17 @@ def _median5(x: Array) -> Array:
 
 
 def _spikes(x: Array, floor: float) -> Array:
-    """Rows of x (N, 3) that stand alone: far from their neighbours' median beyond noise and floor."""
-    if x.shape[0] < 8:
-        return np.zeros(x.shape[0], bool)
+    """Rows of x (N, 3) that stand alone: far from their neighbours' median beyond noise and floor, while
+    the neighbours either side agree with each other five times better (an impact or a jerk moves the
+    neighbours too; a corrupt sample does not)."""
+    n = x.shape[0]
+    if n < 8:
+        return np.zeros(n, bool)
     d = np.linalg.norm(x - _median5(x), axis=1)
     scale = 1.4826 * np.median(d) + 1e-12
-    return (d > 12 * scale) & (d > floor)
+    i = np.arange(n)
+    nb = np.linalg.norm(x[np.clip(i - 1, 0, n - 1)] - x[np.clip(i + 1, 0, n - 1)], axis=1)
+    return (d > 12 * scale) & (d > floor) & (d > 5 * nb)
 
 
 def _fill(x: Array, bad: Array) -> Array:
@@ -70,24 +78,35 @@ def _fill(x: Array, bad: Array) -> Array:
 
 
 def noise_bursts(gyro: Array, rate: float, window_s: float = 0.5, factor: float = 6.0) -> list[tuple[int, int]]:
-    """IMU rows [i0, i1) where the gyro's third-difference RMS over ``window_s`` exceeds ``factor`` × the
-    log's median (white noise gains 20× in the third difference; smooth motion is removed)."""
+    """IMU rows [i0, i1) where the gyro is noisy: its third-difference RMS over ``window_s`` exceeds
+    ``factor`` × the log's median, *and* is more than 2.5 × its first-difference RMS there.
+
+    White noise of σ has third differences of RMS √20 σ and first differences √2 σ (ratio 3.2); motion,
+    even a hand's jerk, lives below ~10 Hz, where at 100 Hz the ratio is below 0.4. The ratio keeps
+    fast hand-held turns from counting as noise; the factor keeps the sensor's own noise from it.
+    """
     n = gyro.shape[0]
     if n < 40 or not np.isfinite(rate):
         return []
-    d3 = np.zeros(n)
-    d3[3:] = np.sum(np.diff(gyro, 3, axis=0) ** 2, axis=1)
     w = max(5, int(round(window_s * rate)))
-    c = np.cumsum(np.concatenate([[0.0], d3]))
     lo = np.clip(np.arange(n) - w // 2, 0, n - w)
-    rms = np.sqrt((c[lo + w] - c[lo]) / w)
-    ref = float(np.median(rms))
+
+    def wrms(k: int) -> Array:
+        dk = np.zeros(n)
+        dk[k:] = np.sum(np.diff(gyro, k, axis=0) ** 2, axis=1)
+        c = np.cumsum(np.concatenate([[0.0], dk]))
+        return np.sqrt((c[lo + w] - c[lo]) / w)
+
+    r3, r1 = wrms(3), wrms(1)
+    ref = float(np.median(r3))
     if ref <= 0:
         return []
-    mask = rms > factor * ref
+    mask = (r3 > factor * ref) & (r3 > 2.5 * r1)
     m = np.concatenate([[False], mask, [False]]).astype(np.int8)
     dm = np.diff(m)
-    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(dm == 1), np.flatnonzero(dm == -1), strict=True)]
+    # at least a window long: an impact (a unit put down on a table) rings for less
+    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(dm == 1), np.flatnonzero(dm == -1), strict=True)
+            if b - a >= w]
 
 
 def clean_log(d: ImuData) -> Cleaned:
@@ -105,8 +124,10 @@ def clean_log(d: ImuData) -> Cleaned:
         in_burst[max(0, a - 3):b + 3] = True
     if d.imu_rate >= 20:  # below, neighbours are too far apart in time to vouch for each other
         # (inside a noise burst every sample stands alone: that is the burst, handled below)
-        bad_g |= _spikes(g_ok, 0.5) & ~in_burst
-        bad_a |= _spikes(a_ok, 4.0) & ~in_burst
+        # floors above any hand's or impact's sample-to-sample change (the Ferraris session's table
+        # knocks reach 0.6 rad/s and 6 m/s² in one sample)
+        bad_g |= _spikes(g_ok, 2.0) & ~in_burst
+        bad_a |= _spikes(a_ok, 20.0) & ~in_burst
     n_imu = int((bad_g | bad_a).sum())
     if n_imu:
         gyro = _fill(g_ok, bad_g)
@@ -131,7 +152,7 @@ def clean_log(d: ImuData) -> Cleaned:
     if bursts:
         t = d.t_imu
         tot = sum(t[min(b, d.n_imu - 1)] - t[a] for a, b in bursts)
-        warnings.append(f"{d.source}: gyro noise bursts (third-difference RMS > 6× the log's median) in "
+        warnings.append(f"{d.source}: gyro noise bursts (white noise > 6× the log's median) in "
                         f"{len(bursts)} stretch{'es' if len(bursts) > 1 else ''}, {tot:.1f} s in all; "
                         "motions that overlap them are not used for the gyro scale")
     data = replace(d, gyro=gyro, acc=acc, t_mag=t_mag, mag=mag) if (n_imu or n_mag) else d

@@ -162,11 +162,15 @@ def dip_outliers(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCa
         return 0, []
     med = float(np.median([r[3] for r in rows]))
     n, lines = 0, []
+    drop: dict[int, tuple[Segmentation, Array]] = {}
     for sg, iv, m, dip in rows:
         if abs(dip - med) > tol_deg:
             n += int(m.sum())
-            sg.data = replace(sg.data, t_mag=sg.data.t_mag[~m], mag=sg.data.mag[~m])
+            prev = drop.get(id(sg), (sg, np.zeros_like(m)))[1]
+            drop[id(sg)] = (sg, prev | m)
             lines.append(f"{sg.data.source} {iv.t0:.1f}–{iv.t1:.1f} s (dip {dip:.1f}° against {med:.1f}°)")
+    for sg, m in drop.values():
+        sg.data = replace(sg.data, t_mag=sg.data.t_mag[~m], mag=sg.data.mag[~m])
     return n, lines
 
 

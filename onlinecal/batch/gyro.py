@@ -21,7 +21,7 @@ from scipy.optimize import least_squares
 from ..model import SensorCalibration
 from .decomp import decompose_many
 from .ellipsoid import FitError
-from .segment import Interval, Phase, Segmentation
+from .segment import Interval, Phase, Segmentation, moving_std
 from .sensors import StepReport, sqrt_psd
 
 Array = NDArray[np.float64]
@@ -333,12 +333,22 @@ def fit_gyro_rate_table(raw_means: Array, rates_body: Array) -> SensorCalibratio
 
 
 def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: SensorCalibration | None,
-                  rng: np.random.Generator) -> tuple[SensorCalibration, StepReport]:
-    """The tool-free gyro pipeline: bias (34–35) → axes (28–31) → scale (36) → eq. 36 over all motions."""
+                  rng: np.random.Generator, g: float = 9.80665) -> tuple[SensorCalibration, StepReport]:
+    """The tool-free gyro pipeline: bias (34–35) → axes (28–31) → scale (36) → eq. 36 over all motions;
+    where neither phases about all three axes nor four rest-to-rest motions exist (a hand-held session),
+    eq. 36 generalised to any rotation (:func:`fit_gyro_kinematic`). Where none of these can run, the
+    scale and axes are *undetermined*: the matrix stays the identity, its σ is absent, and
+    ``figures["undetermined"]`` lists the terms with a warning naming the missing motion.
+    """
     rep = StepReport("gyro")
-    o, sig_o = gyro_bias_cumsum(segs)
-    axes = gyro_axes_from_phases(segs, o)
-    scales = gyro_scale_from_phases(segs, o, axes, acc, mag)
+    try:
+        o, sig_o = gyro_bias_cumsum(segs)
+        bias_from = "rests (eqs. 34-35)"
+    except FitError:
+        o, sig_o, bias_from = None, None, None
+    o_axes = o if o is not None else np.median(np.concatenate([s.data.gyro for s in segs]), axis=0)
+    axes = gyro_axes_from_phases(segs, o_axes) if o is not None else {}
+    scales = gyro_scale_from_phases(segs, o, axes, acc, mag) if o is not None else {}
     rep.figures["phase_axes"] = "".join("xyz"[k] for k in sorted(axes))
     rep.figures["phase_scales"] = {"xyz"[k]: 1.0 / c for k, c in sorted(scales.items())}
     cols = []
@@ -349,33 +359,186 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     G_paper = np.linalg.inv(np.column_stack(cols))
     rep.figures["paper_matrix"] = G_paper.tolist()
     missing = [k for k in range(3) if k not in scales or k not in axes]
-    try:
-        G_ref, cov, rms, n = refine_gyro_matrix(segs, o, G_paper, acc, mag)
-        rep.figures.update({"refined_transitions": n, "refined_residual_rms": rms,
-                            "refined_vs_paper": float(np.linalg.norm(G_ref - G_paper) / np.linalg.norm(G_paper))})
-    except FitError as e:
-        G_ref, cov = None, np.full((9, 9), np.nan)
-        rep.figures["refined_transitions"] = 0
-        if missing:
-            rep.warnings.append(f"gyro: no usable phase about {''.join('xyz'[k] for k in missing)} "
-                                f"and {e}; that axis keeps scale of the others' mean and no misalignment")
-    # The paper's phase-based estimate wherever phases cover all three axes (it is the more precise:
-    # it does not inherit the accel/mag alignment); the all-transitions fit otherwise.
-    G = G_paper if (not missing or G_ref is None) else G_ref
-    rep.figures["method"] = "phases (eqs. 28-31, 36)" if G is G_paper else "all transitions (eq. 36 generalised)"
-    # σ: the transitions fit's covariance, drawn through the decomposition. For the phase method that is
-    # an upper bound: it serves for the scale (eq. 36 compares the same reference angles), but the axis
+    G_ref, cov = None, np.full((9, 9), np.nan)
+    ref_err = ""
+    if o is not None:
+        try:
+            G_ref, cov, rms, n = refine_gyro_matrix(segs, o, G_paper, acc, mag)
+            rep.figures.update({"refined_transitions": n, "refined_residual_rms": rms,
+                                "refined_vs_paper": float(np.linalg.norm(G_ref - G_paper) / np.linalg.norm(G_paper))})
+        except FitError as e:
+            rep.figures["refined_transitions"] = 0
+            ref_err = str(e)
+    sigma: dict[str, list[float]] = {}
+    if missing and G_ref is None:
+        # Any rotation: the field (and gravity while quasi-static) seen from the turning body.
+        try:
+            G_k, o_k, cov12, figs = fit_gyro_kinematic(segs, mag, acc, g)
+        except FitError as e:
+            what = "".join("xyz"[k] for k in missing)
+            rep.warnings.append(
+                f"gyro: scale and axes undetermined (no rotation phase about {what}; {ref_err or 'no rests'}; {e}): "
+                "the matrix is left at identity and is NOT a calibration; record turns about all three axes "
+                "(a rest before and after each, or with the magnetometer logging)")
+            rep.figures["undetermined"] = ["scale", "alpha", "xi"]
+            rep.figures["method"] = "none (bias only)"
+            if o is None:
+                raise FitError(f"gyro: no rest for the bias and {e}") from e
+            sigma["bias"] = sig_o.tolist()
+            return SensorCalibration(o, np.eye(3), sigma), rep
+        rep.figures["any_rotation"] = figs
+        rep.figures["method"] = "any rotation (eq. 36 generalised: v' = v x w, v the field or gravity)"
+        Gi = np.linalg.inv(G_k)
+        sig_b = np.sqrt(np.abs(np.diag(Gi @ cov12[9:, 9:] @ Gi.T)))
+        if o is not None:
+            rep.figures["bias_rests_minus_any_rotation"] = (o - o_k).tolist()
+        o, sig_o, bias_from = o_k, sig_b, "any rotation, fitted with the matrix"
+        G, cov = G_k, cov12[:9, :9]
+        use_phase_sigma = False
+    else:
+        if o is None:
+            raise FitError("gyro bias: no static interval (need a rest to fit eqs. 34–35)")
+        # The paper's phase-based estimate wherever phases cover all three axes (it is the more precise:
+        # it does not inherit the accel/mag alignment); the all-transitions fit otherwise.
+        G = G_paper if (not missing or G_ref is None) else G_ref
+        rep.figures["method"] = ("phases (eqs. 28-31, 36)" if G is G_paper
+                                 else "all transitions (eq. 36 generalised)")
+        use_phase_sigma = G is G_paper and not missing
+    rep.figures["bias_from"] = bias_from
+    # σ: the fit's covariance, drawn through the decomposition. For the phase method that is an upper
+    # bound: it serves for the scale (eq. 36 compares the same reference angles), but the axis
     # directions of eqs. 28–31 are known from the phases' own sample scatter — 10–20× tighter on the
     # simulated paper session, where the bound was 10–20× the actual error of alpha and xi (a batch-started
     # filter holds those as consider states: an inflated σ there costs the other terms information).
-    sigma: dict[str, list[float]] = {"bias": sig_o.tolist()}
+    sigma["bias"] = np.asarray(sig_o).tolist()
     if np.all(np.isfinite(cov)):
         L = sqrt_psd(cov)
         par, ok = decompose_many((G.ravel() + rng.standard_normal((48, 9)) @ L.T).reshape(-1, 3, 3))
         sd = np.std(par[ok], axis=0)
-        if G is G_paper and not missing:
+        if use_phase_sigma:
             sd[3:] = phase_matrix_sigma(axes, scales, sd[:3], rng)[3:]
             rep.figures["sigma_angles"] = "phase scatter (eqs. 28-31)"
         sigma.update({"scale": sd[:3].tolist(), "alpha": sd[3:6].tolist(), "xi": sd[6:].tolist(),
                       "matrix": np.sqrt(np.diag(cov)).reshape(3, 3).tolist()})
+    else:
+        rep.figures["undetermined"] = ["scale", "alpha", "xi"]
+        rep.warnings.append(f"gyro: no usable phase about {''.join('xyz'[k] for k in missing)} and {ref_err}; "
+                            "scale and axes undetermined (σ absent): the axis keeps the others' mean scale and "
+                            "no misalignment, which is NOT a calibration")
     return SensorCalibration(o, G, sigma), rep
+
+
+# -- any rotation: a world-fixed vector seen from the turning body (ṁ = −ω × m) ----------------------------
+
+_EPS = np.zeros((3, 3, 3))
+_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
+_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
+
+
+def _kinematic_rows(t: Array, w: Array, v: Array, ok: Array, win: int) -> tuple[Array, Array, Array]:
+    """Equations of one log for :func:`fit_gyro_kinematic`: over each window of ``win`` samples,
+    ``v(t_b) − v(t_a) = ∫ v × ω dt`` with ``ω = G w − b`` (the body frame sees a world-fixed unit vector v
+    turn as v̇ = −ω × v = v × ω; exact for any rotation, integrated by the trapezoid rule).
+
+    t (N,), w (N, 3) raw rate, v (N, 3) unit vector at the IMU times, ok (N,) usable samples.
+    Returns (A (3K, 12) for the unknowns vec(G) row-major and b, y (3K,), window start index (K,)).
+    """
+    n = t.size
+    # v × (G w) = [v]× G w: entry i is Σ_jk ε_ijk v_j Σ_l G_kl w_l  →  coefficient of G_kl is (Σ_j ε_ijk v_j) w_l
+    vx = np.einsum("ijk,nj->nik", _EPS, v)  # [v]× per sample (N, 3, 3)
+    blk = np.concatenate([(vx[:, :, :, None] * w[:, None, None, :]).reshape(n, 3, 9), -vx], axis=2)  # (N,3,12)
+    dt = np.diff(t)
+    trap = 0.5 * (blk[1:] + blk[:-1]) * dt[:, None, None]
+    c = np.concatenate([np.zeros((1, 3, 12)), np.cumsum(trap, axis=0)])
+    bad = np.concatenate([[0], np.cumsum(~ok)])
+    starts = np.arange(0, n - win, win)
+    ends = starts + win
+    good = (bad[ends + 1] - bad[starts]) == 0
+    starts, ends = starts[good], ends[good]
+    A = (c[ends] - c[starts]).reshape(-1, 12)
+    y = (v[ends] - v[starts]).ravel()
+    return A, y, starts
+
+
+def fit_gyro_kinematic(segs: list[Segmentation], mag: SensorCalibration | None, acc: SensorCalibration | None,
+                       g: float, window_s: float = 0.5, quasi_static: float = 0.3
+                       ) -> tuple[Array, Array, Array, dict]:
+    """Gyro matrix G and bias o from any rotation (eq. 36 generalised to a continuum of short spans).
+
+    A world-fixed vector v seen in the body frame obeys v̇ = v × ω (ω = G (w_raw − o)): the calibrated,
+    normalised magnetometer always (its field is world-fixed), and the calibrated accelerometer where
+    the unit is quasi-static (moving std over 0.5 s below ``quasi_static`` m/s² and ‖a‖ within
+    ``quasi_static`` of g: gravity). Integrated over windows of ``window_s``,
+    ``v(t_b) − v(t_a) = Σ v × (G w − b) dt`` is linear in the 12 unknowns (G, b = G o): one least-squares
+    solve, windows beyond 5 MAD (a disturbance, a knock) dropped and the solve repeated. Bias, scale,
+    misalignment, non-orthogonality, a wrong axis sign and a mounting rotation of any angle are all
+    inside G. G comes out in the frame of the reference vectors (the magnetometer's when it is given).
+
+    Returns (G (3, 3), o (3,), covariance of (vec G, b) (12, 12), figures). Raises FitError when the
+    rotation seen does not determine all 12 unknowns (the smallest singular value of the design names
+    the unexcited direction).
+    """
+    As, ys, src = [], [], []
+    for s in segs:
+        d = s.data
+        if d.n_imu < 50:
+            continue
+        win = max(2, int(round(window_s * d.imu_rate)))
+        t = d.t_imu
+        refs = []
+        if mag is not None and d.n_mag >= 20:
+            m = mag.apply(d.mag)
+            m /= np.linalg.norm(m, axis=1, keepdims=True)
+            v = np.column_stack([np.interp(t, d.t_mag, m[:, k]) for k in range(3)])
+            v /= np.linalg.norm(v, axis=1, keepdims=True)
+            # usable where a mag sample lies within 2 mag periods (no bridging of mag gaps)
+            per = (d.t_mag[-1] - d.t_mag[0]) / max(1, d.n_mag - 1)
+            j = np.clip(np.searchsorted(d.t_mag, t), 1, d.n_mag - 1)
+            near = np.minimum(np.abs(t - d.t_mag[j - 1]), np.abs(d.t_mag[j] - t)) <= 2 * per
+            ok = near & (t >= d.t_mag[0]) & (t <= d.t_mag[-1])
+            refs.append(("mag", v, ok))
+        if acc is not None and mag is None:
+            a = acc.apply(d.acc)
+            _, sd = moving_std(a, max(5, int(round(0.5 * d.imu_rate))))
+            nrm = np.linalg.norm(a, axis=1)
+            ok = (np.linalg.norm(sd, axis=1) < quasi_static) & (np.abs(nrm - g) < quasi_static)
+            refs.append(("accel", a / nrm[:, None], ok))
+        for name, v, ok in refs:
+            A, y, _ = _kinematic_rows(t, d.gyro, v, ok, win)
+            if A.shape[0]:
+                As.append(A)
+                ys.append(y)
+                src.append((d.source, name, A.shape[0] // 3))
+    if not As:
+        raise FitError("gyro (any rotation): no span with a reference vector (magnetometer, or accelerometer "
+                       "while quasi-static)")
+    A = np.concatenate(As)
+    y = np.concatenate(ys)
+    keep = np.ones(A.shape[0] // 3, bool)
+    for _ in range(3):
+        rows = np.repeat(keep, 3)
+        x, *_ = np.linalg.lstsq(A[rows], y[rows], rcond=None)
+        r = (y - A @ x).reshape(-1, 3)
+        rn = np.linalg.norm(r, axis=1)
+        lim = 5 * 1.4826 * np.median(rn[keep]) + 1e-12
+        new = rn <= lim
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    rows = np.repeat(keep, 3)
+    sv = np.linalg.svd(A[rows], compute_uv=False)
+    if sv[-1] < 1e-6 * sv[0]:
+        raise FitError("gyro (any rotation): the rotations seen do not determine every gyro term (turn the unit "
+                       "about all three axes)")
+    r = y[rows] - A[rows] @ x
+    dof = max(1, r.size - 12)
+    s2 = float(r @ r / dof)
+    # Adjacent windows share an end point (its noise enters both with opposite sign): σ is inflated by
+    # √2 to stay on the safe side of that correlation.
+    cov = np.linalg.inv(A[rows].T @ A[rows]) * s2 * 2.0
+    G = x[:9].reshape(3, 3)
+    o = np.linalg.solve(G, x[9:])
+    figs = {"spans": int(keep.sum()), "spans_dropped": int((~keep).sum()), "window_s": window_s,
+            "residual_rms": float(np.sqrt(s2)), "references": sorted({n for _, n, _ in src}),
+            "condition": float(sv[0] / sv[-1])}
+    return G, o, cov, figs

@@ -14,6 +14,7 @@ from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
 from ..sim.motion import G0
 from .clean import clean_log
+from .clock import regularise_clock
 from .ellipsoid import FitError
 from .gyro import fit_gyroscope
 from .segment import Segmentation, noise_floors, segment
@@ -23,8 +24,17 @@ from .sensors import (
     distinct_directions,
     fit_accelerometer,
     fit_magnetometer,
+    mag_to_accel_rotation,
     static_means,
 )
+
+
+def _rotated_sigma(sigma: dict, extra_deg: float) -> dict:
+    """σ of a sensor whose frame was turned by a rotation known to ``extra_deg`` (1σ): alpha widened."""
+    out = {k: np.asarray(v, float) for k, v in sigma.items()}
+    if "alpha" in out:
+        out["alpha"] = np.hypot(out["alpha"], np.radians(extra_deg))
+    return out
 
 
 @dataclass
@@ -59,6 +69,10 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
         raise FitError("no IMU samples in the logs")
     # Reader warnings carry no file name; with several logs of one unit the user must know which one.
     warnings: list[str] = [w if d.source in w else f"{d.source}: {w}" for d in logs for w in d.warnings]
+    clocked = [regularise_clock(d) for d in logs]
+    logs = [c[0] for c in clocked]
+    for c in clocked:
+        warnings += c[1]
     cleaned = [clean_log(d) for d in logs]
     logs = [c.data for c in cleaned]
     for c in cleaned:
@@ -113,15 +127,31 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
             except FitError as e:
                 mag = None
                 warnings.append(f"mag step skipped: {e}")
+    if acc is not None and mag is not None and len(steps["mag"].figures.get("aligned_axes", "")) < 2:
+        # The phases could not put the magnetometer on the accelerometer's axes (eqs. 25–27): the
+        # constant angle between gravity and the field at quasi-static attitudes can, at any angle.
+        try:
+            P, figs = mag_to_accel_rotation(segs, acc, mag, g)
+            mag = SensorCalibration(mag.bias, P @ mag.matrix, _rotated_sigma(mag.sigma, figs["sigma_deg"]))
+            steps["mag"].figures["to_accel_rotation"] = figs
+            warnings.append(f"mag: rotation phases could not align the magnetometer to the other sensors; its frame "
+                            f"is turned by {figs['angle_deg']:.1f}° (σ {figs['sigma_deg']:.2f}°) onto the "
+                            f"accelerometer's, from the gravity-field angle at {figs['attitude_cells']} quasi-static "
+                            "attitudes")
+        except FitError as e:
+            warnings.append(f"mag: not aligned to the accelerometer ({e}); the two frames may differ")
     try:
-        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag, rng)
+        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag, rng, g)
     except FitError as e:
         warnings.append(f"gyro step skipped: {e}")
     for st in steps.values():
         warnings += st.warnings
+    undetermined = [f"{k}.{p}" for k, st in steps.items() for p in st.figures.get("undetermined", [])]
     if gyro is None and acc is None and mag is None:
         raise FitError("; ".join(warnings) or "no sensor could be calibrated")
     res = BatchResult(Calibration(gyro=gyro, accel=acc, mag=mag, source="batch"), segs, steps, warnings)
-    cal = res.calibration.replace(meta={"batch": res.summary()})
+    summary = res.summary()
+    summary["undetermined"] = undetermined  # terms whose value is NOT a calibration (σ absent)
+    cal = res.calibration.replace(meta={"batch": summary})
     res.calibration = cal
     return res

@@ -336,3 +336,51 @@ def fit_accelerometer(
 
 
 __all__ = ["fit_magnetometer", "fit_accelerometer", "static_means", "StepReport", "sqrtm_spd", "sqrt_psd"]
+
+
+def quasi_static_pairs(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCalibration, g: float,
+                       tol: float = 0.3) -> tuple[Array, Array]:
+    """Calibrated (accel, mag) pairs at the IMU times where the unit is quasi-static (moving std over 0.5 s
+    below ``tol`` m/s² and ‖a‖ within ``tol`` of g), the mag interpolated onto those times (only where a
+    mag sample lies within two mag periods). Returns (a (K, 3), m (K, 3))."""
+    A, M = [], []
+    for sg in segs:
+        d = sg.data
+        if d.n_imu < 50 or d.n_mag < 20:
+            continue
+        a = acc.apply(d.acc)
+        _, sd = moving_std(a, max(5, int(round(0.5 * d.imu_rate))))
+        nrm = np.linalg.norm(a, axis=1)
+        t = d.t_imu
+        per = (d.t_mag[-1] - d.t_mag[0]) / max(1, d.n_mag - 1)
+        j = np.clip(np.searchsorted(d.t_mag, t), 1, d.n_mag - 1)
+        near = np.minimum(np.abs(t - d.t_mag[j - 1]), np.abs(d.t_mag[j] - t)) <= 2 * per
+        ok = (np.linalg.norm(sd, axis=1) < tol) & (np.abs(nrm - g) < tol) & near
+        if not ok.any():
+            continue
+        m = mag.apply(d.mag)
+        A.append(a[ok])
+        M.append(np.column_stack([np.interp(t[ok], d.t_mag, m[:, k]) for k in range(3)]))
+    return (np.concatenate(A), np.concatenate(M)) if A else (np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+def mag_to_accel_rotation(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCalibration,
+                          g: float) -> tuple[Array, dict]:
+    """Rotation P (any angle) that carries the magnetometer's frame onto the accelerometer's, from the
+    constant angle between gravity and the field at quasi-static attitudes (:func:`align.align_by_dip`),
+    the samples weighted by attitude coverage. Used where rotation phases could not align the two
+    (eqs. 25–27 need phases about two axes). Returns (P (3, 3), figures: angle °, σ °, dip °, samples).
+    Raises FitError when gravity was not seen tilted about two axes (P is then not determined)."""
+    from .align import align_by_dip
+
+    a, m = quasi_static_pairs(segs, acc, mag, g)
+    if a.shape[0] < 20 or distinct_directions(a) < 4:
+        raise FitError(f"mag-to-accel rotation: {distinct_directions(a) if a.shape[0] else 0} distinct quasi-static "
+                       "attitudes (need 4, tilted about two axes)")
+    w = sphere_bin_weights(a, per_bin=20)
+    k = w > 0
+    P, c, rms, cov = align_by_dip(a[k], m[k], w[k])
+    sig = float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3))) if np.all(np.isfinite(cov)) else float("inf")
+    ang = float(np.degrees(np.arccos(np.clip((np.trace(P) - 1) / 2, -1, 1))))
+    return P, {"angle_deg": ang, "sigma_deg": sig, "dip_deg": float(np.degrees(np.arcsin(np.clip(c, -1, 1)))),
+               "residual_rms": rms, "samples": int(a.shape[0]), "attitude_cells": int(k.sum())}

@@ -99,6 +99,7 @@ def fit_norm_lm(
     reject_sigma: float = 5.0,
     weights: Array | None = None,
     max_nfev: int = 200,
+    refine: bool = True,
 ) -> NormFit:
     """Geometric fit of ‖M (x − o)‖ = r by Levenberg–Marquardt (eq. 17; eq. 32 for the accelerometer).
 
@@ -109,7 +110,8 @@ def fit_norm_lm(
     long rest counts as one attitude); the covariance then uses the effective sample count
     (Σw)² / Σw². Outlier rejection at ``reject_sigma`` × MAD (where the points outnumber the parameters
     fourfold), then a refit. The Jacobian is analytic: ∂‖y‖/∂o = −Mᵀy/‖y‖, ∂‖y‖/∂M_jk = (y_j d_k + y_k d_j)/‖y‖
-    (j ≠ k; y_j d_j/‖y‖ on the diagonal) with d = x − o, y = M d.
+    (j ≠ k; y_j d_j/‖y‖ on the diagonal) with d = x − o, y = M d. ``refine=False`` keeps (o0, M0) and only
+    evaluates the residual and covariance there (for a start that LM would leave along a degenerate valley).
     """
     x = np.asarray(x, float)
     wt = np.ones(x.shape[0]) if weights is None else np.asarray(weights, float)
@@ -158,7 +160,13 @@ def fit_norm_lm(
             cols.append(np.einsum("ij,ij->i", u, d)[:, None])
         return np.hstack(cols) * sw[:, None]
 
+    class _Fixed:
+        def __init__(self, x: Array) -> None:
+            self.x = x
+
     def solve(p: Array, m: Array) -> object:
+        if not refine:
+            return _Fixed(p)
         sw = np.sqrt(wt[m])
         return least_squares(resid, p, jac=jac, args=(x[m], sw), method="lm", x_scale="jac",
                              max_nfev=max_nfev)

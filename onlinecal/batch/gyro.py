@@ -53,6 +53,14 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
         raise FitError("gyro bias: no static interval (need a rest to fit eqs. 34–35)")
     o = num / den
     sigma = np.sqrt(np.sum(res_var, axis=0) / n_tot / n_tot)
+    # Values on a lattice coarser than the noise (RAW_IMU: 1 mrad/s) do not average out: the mean of
+    # held readings can be off by up to half a step. σ is floored at q/√12 where the noise is below q.
+    w_all = np.concatenate([s.data.gyro[iv.i0:iv.i1] for s in segs for iv in s.rests])
+    for k in range(3):
+        d = np.abs(np.diff(np.unique(w_all[:, k])))
+        q = float(d.min()) if d.size else 0.0
+        if q > 0 and np.std(w_all[:, k]) < 0.6 * q:  # noise well below a step: no dithering
+            sigma[k] = max(sigma[k], q / np.sqrt(12))
     return o, sigma
 
 
@@ -332,6 +340,9 @@ def fit_gyro_rate_table(raw_means: Array, rates_body: Array) -> SensorCalibratio
     return SensorCalibration(o, np.linalg.inv(Ginv))
 
 
+MIN_INTEGRATION_RATE = 20.0  # Hz: below it no step integrates the gyro (hand and vehicle turns reach 5–10 Hz)
+
+
 def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: SensorCalibration | None,
                   rng: np.random.Generator, g: float = 9.80665) -> tuple[SensorCalibration, StepReport]:
     """The tool-free gyro pipeline: bias (34–35) → axes (28–31) → scale (36) → eq. 36 over all motions;
@@ -346,6 +357,19 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
         bias_from = "rests (eqs. 34-35)"
     except FitError:
         o, sig_o, bias_from = None, None, None
+    rates = [s.data.imu_rate for s in segs if s.data.n_imu >= 2 and np.isfinite(s.data.imu_rate)]
+    rate = max(rates, default=float("nan"))
+    if not rate >= MIN_INTEGRATION_RATE:
+        # Integrating a hand's or a vehicle's turns (eq. 36) needs samples well inside their bandwidth;
+        # a 1 Hz telemetry stream gives a number like a gyro scale of 0.000017, not a calibration.
+        rep.warnings.append(f"gyro: the IMU is logged at {rate:.2g} Hz, too slow to integrate turns (need ≥ "
+                            f"{MIN_INTEGRATION_RATE:.0f} Hz): gyro scale and axes undetermined (matrix left at "
+                            "identity, NOT a calibration)" + ("" if o is not None else "; no rest for the bias"))
+        rep.figures.update({"undetermined": ["scale", "alpha", "xi"], "method": "none (bias only)",
+                            "imu_rate_hz": rate})
+        if o is None:
+            raise FitError(f"gyro: IMU at {rate:.2g} Hz is too slow to integrate and no rest gives the bias")
+        return SensorCalibration(o, np.eye(3), {"bias": sig_o.tolist()}), rep
     o_axes = o if o is not None else np.median(np.concatenate([s.data.gyro for s in segs]), axis=0)
     axes = gyro_axes_from_phases(segs, o_axes) if o is not None else {}
     scales = gyro_scale_from_phases(segs, o, axes, acc, mag) if o is not None else {}

@@ -29,6 +29,14 @@ from .sensors import (
 )
 
 
+def _drop_sigma(c: SensorCalibration, st: StepReport | None) -> SensorCalibration:
+    """``c`` without σ for the terms its step lists as undetermined."""
+    und = set(st.figures.get("undetermined", [])) if st is not None else set()
+    if not und:
+        return c
+    return SensorCalibration(c.bias, c.matrix, {k: v for k, v in c.sigma.items() if k not in und and k != "matrix"})
+
+
 def _rotated_sigma(sigma: dict, extra_deg: float) -> dict:
     """σ of a sensor whose frame was turned by a rotation known to ``extra_deg`` (1σ): alpha widened."""
     out = {k: np.asarray(v, float) for k, v in sigma.items()}
@@ -127,13 +135,18 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
             except FitError as e:
                 mag = None
                 warnings.append(f"mag step skipped: {e}")
-    if acc is not None and mag is not None and len(steps["mag"].figures.get("aligned_axes", "")) < 2:
+    mag_ref = mag if mag is not None and not steps["mag"].figures.get("degenerate") else None
+    if acc is not None and mag_ref is not None and len(steps["mag"].figures.get("aligned_axes", "")) < 2:
         # The phases could not put the magnetometer on the accelerometer's axes (eqs. 25–27): the
         # constant angle between gravity and the field at quasi-static attitudes can, at any angle.
         try:
             P, figs = mag_to_accel_rotation(segs, acc, mag, g)
-            mag = SensorCalibration(mag.bias, P @ mag.matrix, _rotated_sigma(mag.sigma, figs["sigma_deg"]))
+            mag = mag_ref = SensorCalibration(mag_ref.bias, P @ mag_ref.matrix,
+                                              _rotated_sigma(mag_ref.sigma, figs["sigma_deg"]))
             steps["mag"].figures["to_accel_rotation"] = figs
+            # its alignment is now that of the accelerometer (whose own alpha may stay undetermined)
+            steps["mag"].figures["undetermined"] = [u for u in steps["mag"].figures.get("undetermined", [])
+                                                    if u != "alpha"]
             warnings.append(f"mag: rotation phases could not align the magnetometer to the other sensors; its frame "
                             f"is turned by {figs['angle_deg']:.1f}° (σ {figs['sigma_deg']:.2f}°) onto the "
                             f"accelerometer's, from the gravity-field angle at {figs['attitude_cells']} quasi-static "
@@ -141,12 +154,16 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
         except FitError as e:
             warnings.append(f"mag: not aligned to the accelerometer ({e}); the two frames may differ")
     try:
-        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag, rng, g)
+        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag_ref, rng, g)
     except FitError as e:
         warnings.append(f"gyro step skipped: {e}")
     for st in steps.values():
         warnings += st.warnings
     undetermined = [f"{k}.{p}" for k, st in steps.items() for p in st.figures.get("undetermined", [])]
+    # A term that the data could not determine carries no σ (contract: σ where known) — never a guess
+    # presented as a result; meta.batch.undetermined lists it.
+    gyro, acc, mag = (None if c is None else _drop_sigma(c, steps.get(n)) for c, n in
+                      ((gyro, "gyro"), (acc, "accel"), (mag, "mag")))
     if gyro is None and acc is None and mag is None:
         raise FitError("; ".join(warnings) or "no sensor could be calibrated")
     res = BatchResult(Calibration(gyro=gyro, accel=acc, mag=mag, source="batch"), segs, steps, warnings)

@@ -90,6 +90,7 @@ def _align(
         normals[k] = (n / np.linalg.norm(n), float(sum(w for _, w in lst)))
     report.figures["aligned_axes"] = "".join("xyz"[k] for k in sorted(normals))
     if len(normals) < 2:
+        report.figures["undetermined"] = ["alpha"]
         report.warnings.append(
             f"{report.name}: rotation phases usable for alignment about {len(normals)} axis"
             f"{'' if len(normals) == 1 else 'es'} (need 2): T_R is "
@@ -125,6 +126,15 @@ def _runs_text(t: Array, bad: Array, gap: float = 1.0) -> tuple[int, str]:
     ends = np.concatenate([tb[cut], [tb[-1]]])
     txt = ", ".join(f"{a:.1f}–{b:.1f} s" for a, b in list(zip(starts, ends, strict=True))[:5])
     return int(starts.size), txt + (" …" if starts.size > 5 else "")
+
+
+def _lm_diverged(fit: NormFit, o0: Array, M0: Array) -> bool:
+    """True when LM moved the centre by more than 0.3 field radii or a singular value of M by more than
+    30 % from the algebraic start: a degenerate valley, not a refinement (eq. 17 refines; it does not
+    re-decide the ellipsoid)."""
+    step = float(np.linalg.norm(M0 @ (fit.o - o0)))
+    s0, s1 = np.linalg.svd(M0, compute_uv=False), np.linalg.svd(fit.M, compute_uv=False)
+    return step > 0.3 or bool(np.any(np.abs(s1 / s0 - 1) > 0.3))
 
 
 def _close_stretches(t: Array, fid: Array, bad: Array, gap: float) -> Array:
@@ -214,6 +224,12 @@ def fit_magnetometer(
         o0, M0 = fit_ellipsoid_svd(xu, w)
         w = sphere_bin_weights((xu - o0) @ M0.T, per_bin=30)
         fit = fit_norm_lm(xu, 1.0, o0, M0, weights=w)
+        diverged = _lm_diverged(fit, o0, M0)
+        if diverged:
+            # The field seen over a band of directions (a flight's yaw turns with small tilts): many
+            # ellipsoids fit it, and LM slides along the valley to a huge one with a residual below the
+            # sensor's noise. The algebraic fit's answer is kept, with the covariance at that point.
+            fit = fit_norm_lm(xu, 1.0, o0, M0, weights=w, refine=False)
         nrm_all = np.linalg.norm((x - fit.o) @ fit.M.T, axis=1)
         # Per-file field strength: a file whose field differs is named and left out of the shape fit.
         off = []
@@ -229,6 +245,12 @@ def fit_magnetometer(
         excluded.append(f"{with_mag[worst[0]].data.source}: field {100 * (worst[1] - 1):+.0f} % against the other "
                         "files (another place or a lasting disturbance); left out of the magnetometer fit")
     rep.warnings += [f"mag: {e}" for e in excluded]
+    if diverged:
+        rep.figures["degenerate"] = True
+        rep.warnings.append("mag: the field was seen from a band of directions only (no full tumble): the geometric "
+                            "fit (eq. 17) is not determined and left the algebraic fit's answer by a field-sized "
+                            "step; the algebraic fit (eqs. 19-24) is kept and no later step uses the magnetometer "
+                            "as a direction reference")
     Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
     M = Q @ fit.M
     res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0

@@ -56,8 +56,9 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
     # Values on a lattice coarser than the noise (RAW_IMU: 1 mrad/s) do not average out: the mean of
     # held readings can be off by up to half a step. σ is floored at q/√12 where the noise is below q.
     w_all = np.concatenate([s.data.gyro[iv.i0:iv.i1] for s in segs for iv in s.rests])
+    w_log = np.concatenate([s.data.gyro[:: max(1, s.data.n_imu // 20000)] for s in segs])  # the lattice
     for k in range(3):
-        d = np.abs(np.diff(np.unique(w_all[:, k])))
+        d = np.diff(np.unique(w_log[:, k]))
         q = float(d.min()) if d.size else 0.0
         if q > 0 and np.std(w_all[:, k]) < 0.6 * q:  # noise well below a step: no dithering
             sigma[k] = max(sigma[k], q / np.sqrt(12))

@@ -103,11 +103,12 @@ def align_by_dip(a: Array, m: Array, weights: Array | None = None) -> tuple[Arra
     best = None
     for R0 in cube_rotations():
         c0 = float(np.median(np.einsum("ij,ij->i", mh @ R0.T, ah)))
-        sol = least_squares(resid, np.array([0, 0, 0, c0]), args=(R0,), method="lm", x_scale="jac")
+        sol = least_squares(resid, np.array([0, 0, 0, c0]), args=(R0,), method="lm", x_scale="jac", max_nfev=60)
         if best is None or sol.cost < best[0].cost:
             best = (sol, R0)
     assert best is not None
     sol, R0 = best
+    sol = least_squares(resid, sol.x, args=(R0,), method="lm", x_scale="jac")  # the winner to convergence
     P = rotvec_to_matrix(sol.x[:3]) @ R0
     r = sol.fun
     dof = max(1, r.size - 4)

@@ -53,6 +53,11 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
         raise FitError("gyro bias: no static interval (need a rest to fit eqs. 34–35)")
     o = num / den
     sigma = np.sqrt(np.sum(res_var, axis=0) / n_tot / n_tot)
+    # Rests far apart in time see a bias that moved (temperature, instability): the white-noise σ is
+    # then optimistic. With several rests, σ is at least the standard error of their means' scatter.
+    means = np.array([s.data.gyro[iv.i0:iv.i1].mean(0) for s in segs for iv in s.rests if iv.n >= 3])
+    if means.shape[0] >= 2:
+        sigma = np.maximum(sigma, means.std(axis=0, ddof=1) / np.sqrt(means.shape[0]))
     # Values on a lattice coarser than the noise (RAW_IMU: 1 mrad/s) do not average out: the mean of
     # held readings can be off by up to half a step. σ is floored at q/√12 where the noise is below q.
     w_all = np.concatenate([s.data.gyro[iv.i0:iv.i1] for s in segs for iv in s.rests])
@@ -60,7 +65,9 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
     for k in range(3):
         d = np.diff(np.unique(w_log[:, k]))
         q = float(d.min()) if d.size else 0.0
-        if q > 0 and np.std(w_all[:, k]) < 0.6 * q:  # noise well below a step: no dithering
+        # noise well below a step (no dithering), or whole mrad/s (MAVLink RAW_IMU): the stored values were
+        # rounded by the log format, whose error against the sensor's own reading need not average out
+        if q > 0 and (np.std(w_all[:, k]) < 0.6 * q or abs(q - 1e-3) < 1e-9):
             sigma[k] = max(sigma[k], q / np.sqrt(12))
     return o, sigma
 
@@ -245,6 +252,9 @@ def ordered_product(R: Array) -> Array:
     return R[:, 0]
 
 
+MAX_TRANSITION_S = 60.0
+
+
 @dataclass
 class _Transitions:
     increments: list[Array]  # per motion (n_i, 3): raw-rate·dt minus bias·dt
@@ -272,7 +282,9 @@ def _collect_transitions(segs: list[Segmentation], o: Array, acc: SensorCalibrat
     pairs = []
     for s in segs:
         for iv in s.motions:
-            if s.gapped(iv) or s.noisy(iv):
+            # A motion of minutes (a whole flight between two ground rests) integrates the bias error
+            # into the attitude (σ_o · T) and costs the fit its time: eq. 36 takes turns, not journeys.
+            if s.gapped(iv) or s.noisy(iv) or iv.duration > MAX_TRANSITION_S:
                 continue
             vecs = _vectors(s, acc, mag, iv)
             if not vecs:
@@ -460,29 +472,38 @@ _EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
 _EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
 
 
-def _kinematic_rows(t: Array, w: Array, v: Array, ok: Array, win: int) -> tuple[Array, Array, Array]:
+def _kinematic_rows(t: Array, w: Array, v: Array, ok: Array, win: int,
+                    chunk: int = 40000) -> tuple[Array, Array, Array]:
     """Equations of one log for :func:`fit_gyro_kinematic`: over each window of ``win`` samples,
     ``v(t_b) − v(t_a) = ∫ v × ω dt`` with ``ω = G w − b`` (the body frame sees a world-fixed unit vector v
     turn as v̇ = −ω × v = v × ω; exact for any rotation, integrated by the trapezoid rule).
 
     t (N,), w (N, 3) raw rate, v (N, 3) unit vector at the IMU times, ok (N,) usable samples.
     Returns (A (3K, 12) for the unknowns vec(G) row-major and b, y (3K,), window start index (K,)).
+    Worked in chunks of about ``chunk`` samples: memory stays bounded for any log length.
     """
     n = t.size
-    # v × (G w) = [v]× G w: entry i is Σ_jk ε_ijk v_j Σ_l G_kl w_l  →  coefficient of G_kl is (Σ_j ε_ijk v_j) w_l
-    vx = np.einsum("ijk,nj->nik", _EPS, v)  # [v]× per sample (N, 3, 3)
-    blk = np.concatenate([(vx[:, :, :, None] * w[:, None, None, :]).reshape(n, 3, 9), -vx], axis=2)  # (N,3,12)
-    dt = np.diff(t)
-    trap = 0.5 * (blk[1:] + blk[:-1]) * dt[:, None, None]
-    c = np.concatenate([np.zeros((1, 3, 12)), np.cumsum(trap, axis=0)])
     bad = np.concatenate([[0], np.cumsum(~ok)])
     starts = np.arange(0, n - win, win)
-    ends = starts + win
-    good = (bad[ends + 1] - bad[starts]) == 0
-    starts, ends = starts[good], ends[good]
-    A = (c[ends] - c[starts]).reshape(-1, 12)
-    y = (v[ends] - v[starts]).ravel()
-    return A, y, starts
+    good = (bad[starts + win + 1] - bad[starts]) == 0
+    starts = starts[good]
+    if starts.size == 0:
+        return np.zeros((0, 12)), np.zeros(0), starts
+    per = max(1, chunk // win)
+    A = np.empty((starts.size, 3, 12))
+    for c0 in range(0, starts.size, per):
+        st = starts[c0:c0 + per]
+        lo, hi = int(st[0]), int(st[-1]) + win + 1
+        vv, ww = v[lo:hi], w[lo:hi]
+        m = hi - lo
+        # v × (G w) = [v]× G w: entry i is Σ_jk ε_ijk v_j Σ_l G_kl w_l → coefficient of G_kl is [v]×_ik w_l
+        vx = np.einsum("ijk,nj->nik", _EPS, vv)  # [v]× per sample (m, 3, 3)
+        blk = np.concatenate([(vx[:, :, :, None] * ww[:, None, None, :]).reshape(m, 3, 9), -vx], axis=2)
+        trap = 0.5 * (blk[1:] + blk[:-1]) * np.diff(t[lo:hi])[:, None, None]
+        c = np.concatenate([np.zeros((1, 3, 12)), np.cumsum(trap, axis=0)])
+        A[c0:c0 + per] = c[st - lo + win] - c[st - lo]
+    y = (v[starts + win] - v[starts]).ravel()
+    return A.reshape(-1, 12), y, starts
 
 
 def fit_gyro_kinematic(segs: list[Segmentation], mag: SensorCalibration | None, acc: SensorCalibration | None,

@@ -135,7 +135,8 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
             except FitError as e:
                 mag = None
                 warnings.append(f"mag step skipped: {e}")
-    mag_ref = mag if mag is not None and not steps["mag"].figures.get("degenerate") else None
+    mag_ref = mag if mag is not None and not (steps["mag"].figures.get("degenerate")
+                                              or steps["mag"].figures.get("partial_coverage")) else None
     if acc is not None and mag_ref is not None and len(steps["mag"].figures.get("aligned_axes", "")) < 2:
         # The phases could not put the magnetometer on the accelerometer's axes (eqs. 25–27): the
         # constant angle between gravity and the field at quasi-static attitudes can, at any angle.

@@ -128,6 +128,9 @@ def _runs_text(t: Array, bad: Array, gap: float = 1.0) -> tuple[int, str]:
     return int(starts.size), txt + (" …" if starts.size > 5 else "")
 
 
+MIN_COVERAGE = 0.2  # smallest eigenvalue of the binned E[u uᵀ] of calibrated field directions
+
+
 def _lm_diverged(fit: NormFit, o0: Array, M0: Array) -> bool:
     """True when LM moved the centre by more than 0.3 field radii or a singular value of M by more than
     30 % from the algebraic start: a degenerate valley, not a refinement (eq. 17 refines; it does not
@@ -279,6 +282,23 @@ def fit_magnetometer(
             res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0
     good = use & ~bad
     norms = res[good] + 1.0
+    # Coverage of the calibrated field directions (attitude-binned): a full tumble gives a smallest
+    # eigenvalue of E[u uᵀ] near 1/3 (the paper session 0.30, the MARG set 0.30); a flight's yaw turns with
+    # ±20° tilts trace a band (0.10), over which the shape (scale, non-orthogonality) is not determined.
+    u = (x[good] - fit.o) @ M.T
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    wu = sphere_bin_weights(u, per_bin=5)
+    cover = float(np.linalg.eigvalsh((u * wu[:, None]).T @ u / wu.sum())[0])
+    rep.figures["coverage_min_eig"] = cover
+    if cover < MIN_COVERAGE and not diverged:
+        rep.figures["partial_coverage"] = True
+        rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | {"scale", "alpha", "xi"})
+        rep.warnings.append(f"mag: the field was seen over part of the sphere only (coverage {cover:.2f}, a full "
+                            f"tumble gives 0.3; need {MIN_COVERAGE}): its scale, alignment and non-orthogonality "
+                            "are not determined (σ absent) and no later step uses it as a direction reference; "
+                            "turn the unit through all orientations")
+    if diverged:
+        rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | {"scale", "alpha", "xi"})
     rep.figures.update({
         "samples": int(x.shape[0]),
         "fit_samples": int((w > 0).sum()),
@@ -396,11 +416,12 @@ def mag_to_accel_rotation(segs: list[Segmentation], acc: SensorCalibration, mag:
     from .align import align_by_dip
 
     a, m = quasi_static_pairs(segs, acc, mag, g)
-    if a.shape[0] < 20 or distinct_directions(a) < 4:
-        raise FitError(f"mag-to-accel rotation: {distinct_directions(a) if a.shape[0] else 0} distinct quasi-static "
-                       "attitudes (need 4, tilted about two axes)")
     w = sphere_bin_weights(a, per_bin=20)
     k = w > 0
+    n_dir = distinct_directions(a[sphere_bin_weights(a, per_bin=1) > 0]) if a.shape[0] else 0  # one per cell
+    if a.shape[0] < 20 or n_dir < 4:
+        raise FitError(f"mag-to-accel rotation: {n_dir} distinct quasi-static attitudes (need 4, tilted about "
+                       "two axes)")
     P, c, rms, cov = align_by_dip(a[k], m[k], w[k])
     sig = float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3))) if np.all(np.isfinite(cov)) else float("inf")
     ang = float(np.degrees(np.arccos(np.clip((np.trace(P) - 1) / 2, -1, 1))))

@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from ..io.base import ImuData
 
 Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 GYRO_LIMIT = 70.0  # rad/s: 4000 °/s, beyond the widest MEMS gyro range
 ACC_LIMIT = 50 * 9.80665  # m/s²
@@ -53,7 +54,7 @@ def _median5(x: Array) -> Array:
     return 0.5 * (s[:, 1] + s[:, 2])  # the median of four
 
 
-def _spikes(x: Array, floor: float) -> Array:
+def _spikes(x: Array, floor: float) -> BoolArray:
     """Rows of x (N, 3) that stand alone: far from their neighbours' median beyond noise and floor, while
     the neighbours either side agree with each other five times better (an impact or a jerk moves the
     neighbours too; a corrupt sample does not)."""
@@ -67,7 +68,7 @@ def _spikes(x: Array, floor: float) -> Array:
     return (d > 12 * scale) & (d > floor) & (d > 5 * nb)
 
 
-def _fill(x: Array, bad: Array) -> Array:
+def _fill(x: Array, bad: BoolArray) -> Array:
     """x with the bad rows replaced by linear interpolation over the good ones (per column)."""
     if not bad.any() or bad.all():
         return x

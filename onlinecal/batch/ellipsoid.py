@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 _IU = np.triu_indices(3)
 
@@ -86,7 +87,7 @@ class NormFit:
     M: Array
     cov: Array
     rms: float
-    inliers: Array
+    inliers: BoolArray
     n_params: int
 
 
@@ -164,7 +165,7 @@ def fit_norm_lm(
         def __init__(self, x: Array) -> None:
             self.x = x
 
-    def solve(p: Array, m: Array) -> object:
+    def solve(p: Array, m: BoolArray) -> object:
         if not refine:
             return _Fixed(p)
         sw = np.sqrt(wt[m])
@@ -234,7 +235,7 @@ def sphere_bin_weights(u: Array, cell_deg: float = 10.0, per_bin: int | None = N
     _, inv, cnt = np.unique(cell, return_inverse=True, return_counts=True)
     w = 1.0 / cnt[inv]
     if per_bin is not None:
-        order = np.argsort(inv, kind="stable") if rng is None else np.lexsort((rng.random(n), inv))
+        order = np.argsort(inv, kind="stable") if rng is None else np.lexsort((np.asarray(rng.random(size=n)), inv))
         starts = np.concatenate([[0], np.cumsum(cnt)[:-1]])
         rank = np.empty(n, int)
         rank[order] = np.arange(n) - np.repeat(starts, cnt)

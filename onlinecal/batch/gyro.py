@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -122,7 +123,7 @@ def phase_matrix_sigma(axes: dict[int, tuple[Array, float, float]], scales: dict
         u2 = u + e - np.outer(e @ u, u)
         s_k = scales[k] ** -1 + rng.standard_normal(draws) * scale_sd[k]  # scales holds c = 1/scale
         mats[:, :, k] = u2 / np.linalg.norm(u2, axis=1, keepdims=True) / s_k[:, None]
-    par, ok = decompose_many(np.linalg.inv(mats))
+    par, ok = decompose_many(np.asarray(np.linalg.inv(mats), float))
     return np.std(par[ok], axis=0)
 
 
@@ -260,7 +261,7 @@ class _Transitions:
     increments: list[Array]  # per motion (n_i, 3): raw-rate·dt minus bias·dt
     pairs: list[tuple[int, Array, Array, float]]  # (motion index, before, after, σ)
 
-    def buckets(self) -> list[tuple[Array, Array]]:
+    def buckets(self) -> list[tuple[NDArray[np.intp], Array]]:
         """Motions grouped by power-of-two padded length: (motion indices, increments (S, L, 3)).
 
         Grouping keeps the zero padding (identity steps) small when one motion is much longer."""
@@ -380,7 +381,7 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
                             "identity, NOT a calibration)" + ("" if o is not None else "; no rest for the bias"))
         rep.figures.update({"undetermined": ["scale", "alpha", "xi"], "method": "none (bias only)",
                             "imu_rate_hz": rate})
-        if o is None:
+        if o is None or sig_o is None:
             raise FitError(f"gyro: IMU at {rate:.2g} Hz is too slow to integrate and no rest gives the bias")
         return SensorCalibration(o, np.eye(3), {"bias": sig_o.tolist()}), rep
     o_axes = o if o is not None else np.median(np.concatenate([s.data.gyro for s in segs]), axis=0)
@@ -406,7 +407,7 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
         except FitError as e:
             rep.figures["refined_transitions"] = 0
             ref_err = str(e)
-    sigma: dict[str, list[float]] = {}
+    sigma: dict[str, Any] = {}
     if missing and G_ref is None:
         # Any rotation: the field (and gravity while quasi-static) seen from the turning body.
         try:
@@ -419,7 +420,7 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
                 "(a rest before and after each, or with the magnetometer logging)")
             rep.figures["undetermined"] = ["scale", "alpha", "xi"]
             rep.figures["method"] = "none (bias only)"
-            if o is None:
+            if o is None or sig_o is None:
                 raise FitError(f"gyro: no rest for the bias and {e}") from e
             sigma["bias"] = sig_o.tolist()
             return SensorCalibration(o, np.eye(3), sigma), rep
@@ -451,6 +452,11 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     if np.all(np.isfinite(cov)):
         L = sqrt_psd(cov)
         par, ok = decompose_many((G.ravel() + rng.standard_normal((48, 9)) @ L.T).reshape(-1, 3, 3))
+        if ok.mean() < 0.9:
+            # the fit's uncertainty reaches a singular matrix: scale and axes are not determined
+            cov = np.full((9, 9), np.nan)
+            ref_err = ref_err or "the fit's σ reaches a singular gyro matrix"
+    if np.all(np.isfinite(cov)):
         sd = np.std(par[ok], axis=0)
         if use_phase_sigma:
             sd[3:] = phase_matrix_sigma(axes, scales, sd[:3], rng)[3:]
@@ -459,9 +465,9 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
                       "matrix": np.sqrt(np.diag(cov)).reshape(3, 3).tolist()})
     else:
         rep.figures["undetermined"] = ["scale", "alpha", "xi"]
-        rep.warnings.append(f"gyro: no usable phase about {''.join('xyz'[k] for k in missing)} and {ref_err}; "
-                            "scale and axes undetermined (σ absent): the axis keeps the others' mean scale and "
-                            "no misalignment, which is NOT a calibration")
+        what = "".join("xyz"[k] for k in missing)
+        rep.warnings.append(f"gyro: scale and axes undetermined (σ absent){f': no usable phase about {what}' if what else ''}"
+                            f"{f'; {ref_err}' if ref_err else ''}; the matrix is NOT a calibration")
     return SensorCalibration(o, G, sigma), rep
 
 
@@ -472,7 +478,7 @@ _EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
 _EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
 
 
-def _kinematic_rows(t: Array, w: Array, v: Array, ok: Array, win: int,
+def _kinematic_rows(t: Array, w: Array, v: Array, ok: NDArray[np.bool_], win: int,
                     chunk: int = 40000) -> tuple[Array, Array, Array]:
     """Equations of one log for :func:`fit_gyro_kinematic`: over each window of ``win`` samples,
     ``v(t_b) − v(t_a) = ∫ v × ω dt`` with ``ω = G w − b`` (the body frame sees a world-fixed unit vector v

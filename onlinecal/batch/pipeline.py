@@ -79,12 +79,12 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
     warnings: list[str] = [w if d.source in w else f"{d.source}: {w}" for d in logs for w in d.warnings]
     clocked = [regularise_clock(d) for d in logs]
     logs = [c[0] for c in clocked]
-    for c in clocked:
-        warnings += c[1]
+    for _, notes in clocked:
+        warnings += notes
     cleaned = [clean_log(d) for d in logs]
     logs = [c.data for c in cleaned]
-    for c in cleaned:
-        warnings += c.warnings
+    for cl in cleaned:
+        warnings += cl.warnings
     floors = noise_floors(logs)
     segs = [segment(d, floors) for d in logs]
     # Too few true rests (hand-held campaigns): fall back to quasi-static rests for the fits that need
@@ -104,8 +104,8 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
             for s_strict, s_rel in zip(segs, relaxed, strict=True):
                 s_rel.bias_rests = s_strict.statics
             segs = relaxed
-    for s, c in zip(segs, cleaned, strict=True):
-        s.bursts = c.bursts
+    for s, cl in zip(segs, cleaned, strict=True):
+        s.bursts = cl.bursts
         warnings += s.warnings
     warnings = list(dict.fromkeys(warnings))
     steps: dict[str, StepReport] = {}
@@ -141,7 +141,7 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
         # The phases could not put the magnetometer on the accelerometer's axes (eqs. 25–27): the
         # constant angle between gravity and the field at quasi-static attitudes can, at any angle.
         try:
-            P, figs = mag_to_accel_rotation(segs, acc, mag, g)
+            P, figs = mag_to_accel_rotation(segs, acc, mag_ref, g)
             mag = mag_ref = SensorCalibration(mag_ref.bias, P @ mag_ref.matrix,
                                               _rotated_sigma(mag_ref.sigma, figs["sigma_deg"]))
             steps["mag"].figures["to_accel_rotation"] = figs

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from ..io.base import ImuData
 
 Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,7 @@ STILL_GYRO_CAP = 0.03  # rad/s, windowed std summed over axes
 STILL_ACC_CAP = 0.3  # m/s²
 
 
-def _powered(data: ImuData) -> Array:
+def _powered(data: ImuData) -> BoolArray:
     """(N,) True at IMU samples where the log says the vehicle is armed or its throttle is above 5 %.
 
     Uses optional series on the log data when a reader provides them (``t_armed``/``armed``,

@@ -56,6 +56,8 @@ def propagate_sigma(
     Ms[:, _IU[0], _IU[1]] = p[:, 3:]
     Ms = Ms + np.triu(Ms, 1).transpose(0, 2, 1)
     par, ok = decompose_many(Ra @ Q @ Ms)  # closed form, all draws at once
+    if ok.mean() < 0.9:  # the draws reach across a singular matrix: no σ of the split is meaningful
+        return {"bias": np.sqrt(np.abs(np.diag(cov9))[:3]).tolist()}
     d = np.concatenate([p[ok, :3], par[ok]], axis=1)
     sd = d.std(axis=0)
     return {"bias": sd[:3].tolist(), "scale": sd[3:6].tolist(), "alpha": sd[6:9].tolist(),
@@ -86,7 +88,7 @@ def _align(
             acc.setdefault(ph.axis, []).append((n, radius**2 * v.shape[0]))
     normals = {}
     for k, lst in acc.items():
-        n = sum(w * n for n, w in lst)
+        n = np.sum([w * n for n, w in lst], axis=0)
         normals[k] = (n / np.linalg.norm(n), float(sum(w for _, w in lst)))
     report.figures["aligned_axes"] = "".join("xyz"[k] for k in sorted(normals))
     if len(normals) < 2:
@@ -116,7 +118,7 @@ def _acc_samples(seg: Segmentation, ph: Phase) -> Array:
     return _lpf(seg.data.acc[ph.i0 : ph.i1], w)
 
 
-def _runs_text(t: Array, bad: Array, gap: float = 1.0) -> tuple[int, str]:
+def _runs_text(t: Array, bad: NDArray[np.bool_], gap: float = 1.0) -> tuple[int, str]:
     """Stretches of ``bad`` samples (times t) merged across gaps < ``gap`` s: (count, "t0–t1 s, …")."""
     tb = t[bad]
     if tb.size == 0:
@@ -140,7 +142,7 @@ def _lm_diverged(fit: NormFit, o0: Array, M0: Array) -> bool:
     return step > 0.3 or bool(np.any(np.abs(s1 / s0 - 1) > 0.3))
 
 
-def _close_stretches(t: Array, fid: Array, bad: Array, gap: float) -> Array:
+def _close_stretches(t: Array, fid: Array, bad: NDArray[np.bool_], gap: float) -> NDArray[np.bool_]:
     """``bad`` with the samples between two bad ones of the same file less than ``gap`` s apart set too:
     inside a disturbance the norm can pass through its undisturbed value (an added field at the right
     angle), and those samples are just as wrong."""
@@ -175,7 +177,7 @@ def dip_outliers(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCa
         return 0, []
     med = float(np.median([r[3] for r in rows]))
     n, lines = 0, []
-    drop: dict[int, tuple[Segmentation, Array]] = {}
+    drop: dict[int, tuple[Segmentation, NDArray[np.bool_]]] = {}
     for sg, iv, m, dip in rows:
         if abs(dip - med) > tol_deg:
             n += int(m.sum())

@@ -47,10 +47,10 @@ def long_logs() -> None:
         print(f"{dur / 60:>4.0f} min, {r['n']} IMU samples: CPU {r['cpu']:.2f} s, wall {r['wall']:.2f} s, "
               f"peak RSS {r['rss_peak_mb']:.0f} MB (log and interpreter alone {r['rss_before_mb']:.0f} MB)")
     a, b = out[600.0], out[3600.0]
+    growth = (b["rss_peak_mb"] - b["rss_before_mb"]) / max(1.0, a["rss_peak_mb"] - a["rss_before_mb"])
     print(f"one hour / 10 min: CPU {b['cpu'] / a['cpu']:.2f}x (bound 6x), wall {b['wall'] / a['wall']:.2f}x, "
           f"peak RSS {b['rss_peak_mb'] / a['rss_peak_mb']:.2f}x (bound 1.2x; the log itself is held in memory), "
-
-          f"batch's own RSS growth {(b['rss_peak_mb'] - b['rss_before_mb']) / max(1.0, a['rss_peak_mb'] - a['rss_before_mb']):.2f}x")
+          f"batch's own RSS growth {growth:.2f}x")
     print(f"CPU per 10 minutes of 100 Hz data: {a['cpu'] / 2:.2f} s (bound 1 s)")
 
 

@@ -466,8 +466,8 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     else:
         rep.figures["undetermined"] = ["scale", "alpha", "xi"]
         what = "".join("xyz"[k] for k in missing)
-        rep.warnings.append(f"gyro: scale and axes undetermined (σ absent){f': no usable phase about {what}' if what else ''}"
-                            f"{f'; {ref_err}' if ref_err else ''}; the matrix is NOT a calibration")
+        why = (f": no usable phase about {what}" if what else "") + (f"; {ref_err}" if ref_err else "")
+        rep.warnings.append(f"gyro: scale and axes undetermined (σ absent){why}; the matrix is NOT a calibration")
     return SensorCalibration(o, G, sigma), rep
 
 

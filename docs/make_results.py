@@ -619,12 +619,14 @@ def findings(mf: dict, fs: dict | None) -> list[str]:
         L += ["* **The magnetometer's axes are not the IMU's**: y and z exchanged"
               + (", one with its sign — a 90° rotation about x" if mf["mag_det"] > 0 else " — a reflection")
               + ". The paper treats T_R(alpha) as a small correction (eq. 5); onlinecal's model takes any angle, "
-              "but finding a 90° offset needs rotation phases about two axes, and the batch had phases about "
-              "one."]
+              "but finding a 90° offset from rotation phases (eqs. 25–27) needs phases about two axes, and this "
+              "set has phases about one; the batch finds it instead from the constant angle between gravity and "
+              "the field at quasi-static attitudes (first section)."]
     odd, val = mf["mag_odd"]
     L += [f"* **The field is not the same in every session.** `{odd}` reads a norm {100 * (val - 1):+.0f} % off "
-          "the others after a sphere calibration; pooling it (thousands of samples at one attitude) spoils the "
-          f"pooled mag fit (tilt-sphere spread {mf['mag_sphere'][1]:.1f} % vs {mf['mag_sphere'][2]:.1f} % "
+          "the others after a sphere calibration; pooled unweighted (thousands of samples at one attitude) it "
+          "spoiled the pooled mag fit — the batch now names it and leaves it out, and weights the rest by "
+          f"attitude bins (tilt-sphere spread {mf['mag_sphere'][1]:.1f} % vs {mf['mag_sphere'][2]:.1f} % "
           f"with the sphere alone; raw {mf['mag_sphere'][0]:.1f} %).",
           f"* **The gyro bias is large** (x {mf['gyro_bias'][0][0]:.3f} rad/s) and moves by up to "
           f"{mf['gyro_bias'][1].max():.1e} rad/s between sessions {mf['gyro_bias'][2]:.2f} °C apart.",

@@ -190,3 +190,59 @@ def test_ferraris_turn_y_in_range(ferraris):
                    "the transitions suggest the hand-made turn itself was short (docs/results.md)", strict=False)
 def test_ferraris_turn_y_at_360(ferraris):
     assert abs(_turn_angle(ferraris, "y_rot") - 360.0) <= 1.0
+
+
+# -- issue 11: hand-held sessions (figures in docs/results.md, before = commit 8429a95) ------------------------
+def _closure(data_dir, res, names):
+    """The project's out-of-fit check, ../shared/tools/gyro_closure.py, on the batch's calibration."""
+    import sys
+
+    tools = data_dir.parent / "tools"
+    if not (tools / "gyro_closure.py").is_file():
+        pytest.skip(f"gyro_closure.py not present at {tools}")
+    sys.path.insert(0, str(tools))
+    import gyro_closure as gc
+
+    cj = json.loads(json.dumps(res.calibration.to_dict()))
+    return {n: gc.closure(gc.read_csv(str(data_dir / "marg-set1" / n)), cj)[0] for n in names}
+
+
+def test_marg_gyro_from_any_rotation_closes_better(marg, data_dir):
+    """The gyro matrix from 0.5-s spans of the field direction (not the end-to-end attitudes the check uses):
+    closure median over the 12 moving files 14.5° before, now ≤ 9°; the axis tilts (2300–3200° each) ≤ 9°.
+    (The issue's bar, median ≤ 3° and max ≤ 8°, is not met: docs/results.md says why.)"""
+    logs, res = marg
+    assert res.steps["gyro"].figures["method"].startswith("any rotation")
+    moving = [n for n in logs if not n.startswith("unmoved")]
+    c = _closure(data_dir, res, moving)
+    assert np.median(list(c.values())) <= 9.0, c
+    for n in ("tilt-around-x-pointing-forward.csv", "tilt-around-x-pointing-up.csv",
+              "tilt-around-z-pointing-up.csv", "tilt-around-y-pointing-up.csv"):
+        assert c[n] <= 6.0, (n, c[n])
+
+
+def test_marg_mag_mounted_90_deg_about_x_against_the_imu(marg):
+    """The HMC5883L's axes are the MPU6050's turned 90° about x (y and z exchanged, one negated: see the
+    raw data); the constant gravity-field angle finds it at any angle, here 89.1° with σ 0.3°."""
+    _, res = marg
+    rot = res.steps["mag"].figures["to_accel_rotation"]
+    assert abs(rot["angle_deg"] - 90.0) <= 2.0 and rot["sigma_deg"] < 1.0
+    M = res.calibration.mag.matrix
+    # after the rotation the mag's y axis reads mostly the raw z axis and vice versa
+    assert abs(M[1, 2]) > abs(M[1, 1]) and abs(M[2, 1]) > abs(M[2, 2])
+
+
+def test_marg_mag_weighted_by_attitude_and_odd_field_named(marg):
+    logs, res = marg
+    assert any("unmoved-x-pointing-up.csv: field +3" in w and "left out" in w for w in res.warnings), res.warnings
+    mag = res.calibration.mag
+    for n, d in logs.items():
+        if n.startswith(("tilt", "rotate")):
+            x = np.linalg.norm(mag.apply(d.mag), axis=1)
+            assert x.std() / x.mean() <= 0.0125, n  # before: up to 9.2 % (tilt-around-x-pointing-up)
+
+
+def test_marg_burst_stamps_get_a_fitted_clock(marg):
+    logs, res = marg
+    clock = [w for w in res.warnings if "burst read times" in w and "fitted sample clock" in w]
+    assert len(clock) == 2 * len(logs)  # IMU and mag stamps of every file

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 _IU = np.triu_indices(3)
 
@@ -36,15 +37,19 @@ def sqrtm_spd(A: Array) -> Array:
     return (V * np.sqrt(w)) @ V.T
 
 
-def fit_ellipsoid_svd(x: Array) -> tuple[Array, Array]:
+def fit_ellipsoid_svd(x: Array, weights: Array | None = None) -> tuple[Array, Array]:
     """Algebraic ellipsoid fit by SVD (eqs. 19–24). x (N, 3), N ≥ 10, not coplanar.
 
     D has rows ``[x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z, 1]`` (eq. 19); d is the right singular
     vector of D for its smallest singular value (eq. 20); A, b, c from d (eqs. 21–22); the centre
     o = −A⁻¹ b and the symmetric correction M = (A / (oᵀAo − c))^½ (eqs. 23–24), so that
     ‖M (x − o)‖ = 1. Returns (o (3,), M (3, 3)). Data are normalised first for conditioning.
+    ``weights`` (N,) ≥ 0 scale the rows of D by √w (attitude-coverage weighting).
     """
     x = np.asarray(x, float)
+    if weights is not None:
+        x = x[np.asarray(weights) > 0]
+        weights = np.asarray(weights, float)[np.asarray(weights) > 0]
     if x.shape[0] < 10:
         raise FitError(f"ellipsoid fit needs ≥ 10 points, got {x.shape[0]}")
     m = x.mean(axis=0)
@@ -53,6 +58,8 @@ def fit_ellipsoid_svd(x: Array) -> tuple[Array, Array]:
     X, Y, Z = u.T
     D = np.column_stack([X * X, Y * Y, Z * Z, 2 * X * Y, 2 * X * Z, 2 * Y * Z, 2 * X, 2 * Y, 2 * Z,
                          np.ones_like(X)])
+    if weights is not None:
+        D = D * np.sqrt(weights / weights.max())[:, None]
     _, sv, Vt = np.linalg.svd(D, full_matrices=False)
     d = Vt[-1]
     A = np.array([[d[0], d[3], d[4]], [d[3], d[1], d[5]], [d[4], d[5], d[2]]])
@@ -80,7 +87,7 @@ class NormFit:
     M: Array
     cov: Array
     rms: float
-    inliers: Array
+    inliers: BoolArray
     n_params: int
 
 
@@ -91,15 +98,27 @@ def fit_norm_lm(
     M0: Array,
     model: str = "full",
     reject_sigma: float = 5.0,
+    weights: Array | None = None,
+    max_nfev: int = 200,
+    refine: bool = True,
 ) -> NormFit:
     """Geometric fit of ‖M (x − o)‖ = r by Levenberg–Marquardt (eq. 17; eq. 32 for the accelerometer).
 
-    ``model``: ``"full"`` (o + symmetric M, 9 parameters), ``"diag"`` (o + diagonal M, 6) or
-    ``"bias"`` (o + one common scale, 4) or ``"offset"`` (o alone, M fixed to M0, 3) — the reduced
-    models serve when the data cannot carry all nine. Outlier rejection at ``reject_sigma`` × MAD
-    (where the points outnumber the parameters fourfold), then a refit.
+    x (N, 3) raw samples; r the calibrated norm (1 for the field, g for gravity). ``model``: ``"full"``
+    (o + symmetric M, 9 parameters), ``"diag"`` (o + diagonal M, 6) or ``"bias"`` (o + one common scale,
+    4) or ``"offset"`` (o alone, M fixed to M0, 3) — the reduced models serve when the data cannot carry
+    all nine. ``weights`` (N,) ≥ 0: each sample's share (e.g. 1 / samples in its attitude bin, so that a
+    long rest counts as one attitude); the covariance then uses the effective sample count
+    (Σw)² / Σw². Outlier rejection at ``reject_sigma`` × MAD (where the points outnumber the parameters
+    fourfold), then a refit. The Jacobian is analytic: ∂‖y‖/∂o = −Mᵀy/‖y‖, ∂‖y‖/∂M_jk = (y_j d_k + y_k d_j)/‖y‖
+    (j ≠ k; y_j d_j/‖y‖ on the diagonal) with d = x − o, y = M d. ``refine=False`` keeps (o0, M0) and only
+    evaluates the residual and covariance there (for a start that LM would leave along a degenerate valley).
     """
     x = np.asarray(x, float)
+    wt = np.ones(x.shape[0]) if weights is None else np.asarray(weights, float)
+    if wt.shape != (x.shape[0],) or not np.all(np.isfinite(wt)) or np.any(wt < 0):
+        raise ValueError("weights must be (N,) finite and ≥ 0")
+    wt = wt / wt.max() if wt.max() > 0 else np.ones_like(wt)
 
     def unpack(p: Array) -> tuple[Array, Array]:
         o = p[:3]
@@ -122,25 +141,56 @@ def fit_norm_lm(
     if x.shape[0] < p0.size:
         raise FitError(f"norm fit ({model}) needs ≥ {p0.size} points, got {x.shape[0]}")
 
-    def resid(p: Array, pts: Array) -> Array:
+    def resid(p: Array, pts: Array, sw: Array) -> Array:
         o, M = unpack(p)
-        return np.linalg.norm((pts - o) @ M.T, axis=1) - r
+        return sw * (np.linalg.norm((pts - o) @ M.T, axis=1) - r)
 
-    keep = np.ones(x.shape[0], bool)
-    sol = least_squares(resid, p0, args=(x,), method="lm", x_scale="jac")
+    def jac(p: Array, pts: Array, sw: Array) -> Array:
+        o, M = unpack(p)
+        d = pts - o
+        y = d @ M.T
+        nrm = np.maximum(np.linalg.norm(y, axis=1), 1e-300)
+        u = y / nrm[:, None]
+        cols = [-(u @ M)]
+        if model == "full":
+            cols.append(np.column_stack([u[:, j] * d[:, k] + (u[:, k] * d[:, j] if j != k else 0.0)
+                                         for j, k in zip(*_IU, strict=True)]))
+        elif model == "diag":
+            cols.append(u * d)
+        elif model == "bias":
+            cols.append(np.einsum("ij,ij->i", u, d)[:, None])
+        return np.hstack(cols) * sw[:, None]
+
+    class _Fixed:
+        def __init__(self, x: Array) -> None:
+            self.x = x
+
+    def solve(p: Array, m: BoolArray) -> object:
+        if not refine:
+            return _Fixed(p)
+        sw = np.sqrt(wt[m])
+        return least_squares(resid, p, jac=jac, args=(x[m], sw), method="lm", x_scale="jac",
+                             max_nfev=max_nfev)
+
+    keep = wt > 0
+    sol = solve(p0, keep)
     # Outlier rejection only where the data outnumber the parameters well (not on 12 static means).
-    for _ in range(2 if x.shape[0] >= 4 * p0.size else 0):
-        res = resid(sol.x, x)
-        mad = 1.4826 * np.median(np.abs(res - np.median(res)))
-        new_keep = np.abs(res) <= max(reject_sigma * mad, 1e-12)
+    for _ in range(2 if keep.sum() >= 4 * p0.size else 0):
+        res = resid(sol.x, x, np.ones(x.shape[0]))  # type: ignore[attr-defined]
+        ref = res[wt > 0]
+        mad = 1.4826 * np.median(np.abs(ref - np.median(ref)))
+        new_keep = (np.abs(res) <= max(reject_sigma * mad, 1e-12)) & (wt > 0)
         if new_keep.sum() < p0.size or np.array_equal(new_keep, keep):
             break
         keep = new_keep
-        sol = least_squares(resid, sol.x, args=(x[keep],), method="lm", x_scale="jac")
-    res = resid(sol.x, x[keep])
-    dof = max(1, keep.sum() - p0.size)
-    s2 = float(res @ res / dof)
-    J = sol.jac
+        sol = solve(sol.x, keep)  # type: ignore[attr-defined]
+    px = sol.x  # type: ignore[attr-defined]
+    w_k = wt[keep]
+    res = resid(px, x[keep], np.ones(int(keep.sum())))
+    n_eff = float(w_k.sum() ** 2 / (w_k @ w_k))
+    dof = max(1.0, n_eff - p0.size)
+    s2 = float((w_k * res) @ res / w_k.sum() * n_eff / dof)
+    J = jac(px, x[keep], np.sqrt(w_k / w_k.sum() * n_eff))
     try:
         cov_p = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
@@ -155,5 +205,44 @@ def fit_norm_lm(
             T[3 + idx, 3 + j] = 1
     elif model == "bias":
         T[[3, 6, 8], 3] = 1
-    o, M = unpack(sol.x)
-    return NormFit(o, M, T @ cov_p @ T.T, float(np.sqrt(np.mean(res**2))), keep, p0.size)
+    o, M = unpack(px)
+    return NormFit(o, M, T @ cov_p @ T.T, float(np.sqrt(np.average(res**2, weights=w_k))), keep, p0.size)
+
+
+def sphere_bin_weights(u: Array, cell_deg: float = 10.0, per_bin: int | None = None,
+                       rng: np.random.Generator | None = None) -> Array:
+    """Weight of each direction u (N, 3) so that every occupied cell of a sphere grid counts once.
+
+    The grid has rings of ``cell_deg`` in latitude and about ``cell_deg`` in longitude (equal-ish
+    area, as autopilots space their compass samples). Weight = 1 / samples in the cell, so a
+    10-minute rest is one attitude, not 60 000 samples. ``per_bin``: at most this many samples per
+    cell keep a weight (a deterministic stride within the cell, or random with ``rng``), the others 0
+    — bounded work for any log length. Returns (N,) weights.
+    """
+    u = np.asarray(u, float)
+    n = u.shape[0]
+    if n == 0:
+        return np.zeros(0)
+    uu = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+    lat = np.arcsin(np.clip(uu[:, 2], -1.0, 1.0))
+    lon = np.arctan2(uu[:, 1], uu[:, 0])
+    step = np.radians(cell_deg)
+    ring = np.minimum(((lat + np.pi / 2) / step).astype(int), int(np.ceil(np.pi / step)) - 1)
+    ring_lat = -np.pi / 2 + (ring + 0.5) * step
+    n_lon = np.maximum(1, np.round(2 * np.pi * np.cos(ring_lat) / step)).astype(int)
+    col = np.minimum(((lon + np.pi) / (2 * np.pi) * n_lon).astype(int), n_lon - 1)
+    cell = ring * 1000 + col
+    _, inv, cnt = np.unique(cell, return_inverse=True, return_counts=True)
+    w = 1.0 / cnt[inv]
+    if per_bin is not None:
+        order = np.argsort(inv, kind="stable") if rng is None else np.lexsort((np.asarray(rng.random(size=n)), inv))
+        starts = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+        rank = np.empty(n, int)
+        rank[order] = np.arange(n) - np.repeat(starts, cnt)
+        c_of = cnt[inv]
+        # stride through each cell so that the kept samples span its whole time range
+        stride = np.maximum(1, c_of // per_bin)
+        kept = (rank % stride == 0) & (rank // stride < per_bin)
+        nk = np.bincount(inv, weights=kept.astype(float))
+        w = np.where(kept, 1.0 / np.maximum(nk[inv], 1.0), 0.0)
+    return w

@@ -13,14 +13,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from ..model import SensorCalibration, decompose
+from ..model import SensorCalibration
+from .decomp import decompose_many
 from .ellipsoid import FitError
-from .segment import Interval, Phase, Segmentation
+from .segment import Interval, Phase, Segmentation, moving_std
 from .sensors import StepReport, sqrt_psd
 
 Array = NDArray[np.float64]
@@ -52,6 +54,22 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
         raise FitError("gyro bias: no static interval (need a rest to fit eqs. 34–35)")
     o = num / den
     sigma = np.sqrt(np.sum(res_var, axis=0) / n_tot / n_tot)
+    # Rests far apart in time see a bias that moved (temperature, instability): the white-noise σ is
+    # then optimistic. With several rests, σ is at least the standard error of their means' scatter.
+    means = np.array([s.data.gyro[iv.i0:iv.i1].mean(0) for s in segs for iv in s.rests if iv.n >= 3])
+    if means.shape[0] >= 2:
+        sigma = np.maximum(sigma, means.std(axis=0, ddof=1) / np.sqrt(means.shape[0]))
+    # Values on a lattice coarser than the noise (RAW_IMU: 1 mrad/s) do not average out: the mean of
+    # held readings can be off by up to half a step. σ is floored at q/√12 where the noise is below q.
+    w_all = np.concatenate([s.data.gyro[iv.i0:iv.i1] for s in segs for iv in s.rests])
+    w_log = np.concatenate([s.data.gyro[:: max(1, s.data.n_imu // 20000)] for s in segs])  # the lattice
+    for k in range(3):
+        d = np.diff(np.unique(w_log[:, k]))
+        q = float(d.min()) if d.size else 0.0
+        # noise well below a step (no dithering), or whole mrad/s (MAVLink RAW_IMU): the stored values were
+        # rounded by the log format, whose error against the sensor's own reading need not average out
+        if q > 0 and (np.std(w_all[:, k]) < 0.6 * q or abs(q - 1e-3) < 1e-9):
+            sigma[k] = max(sigma[k], q / np.sqrt(12))
     return o, sigma
 
 
@@ -69,6 +87,8 @@ def gyro_axes_from_phases(segs: list[Segmentation], o: Array) -> dict[int, tuple
     rows: dict[int, list[Array]] = {}
     for s in segs:
         for ph in s.phases:
+            if s.noisy(ph) and any(q.axis == ph.axis and not s2.noisy(q) for s2 in segs for q in s2.phases):
+                continue  # a noise burst in the middle third would tilt the mean direction
             n = ph.i1 - ph.i0
             a, b = ph.i0 + n // 3, ph.i0 + (2 * n) // 3
             if b - a < 2:
@@ -96,17 +116,15 @@ def phase_matrix_sigma(axes: dict[int, tuple[Array, float, float]], scales: dict
     """σ of (scale, alpha, xi) (9,) of the phase method's matrix G = [c_k u_k]⁻¹ (eqs. 28–31, 36), by
     drawing each axis direction u_k within its σ (:func:`gyro_axes_from_phases`) and each c_k = 1/scale
     within ``scale_sd`` (3,), and decomposing (eqs. 2–6). Needs all three axes."""
-    out = []
-    for _ in range(draws):
-        cols = []
-        for k in range(3):
-            u, _, sd = axes[k]
-            e = rng.standard_normal(3) * sd
-            u2 = u + e - (e @ u) * u
-            s_k = scales[k] ** -1 + rng.standard_normal() * scale_sd[k]  # scales holds c = 1/scale
-            cols.append(u2 / np.linalg.norm(u2) / s_k)
-        out.append(np.concatenate(decompose(np.linalg.inv(np.column_stack(cols)))))
-    return np.std(out, axis=0)
+    mats = np.empty((draws, 3, 3))
+    for k in range(3):
+        u, _, sd = axes[k]
+        e = rng.standard_normal((draws, 3)) * sd
+        u2 = u + e - np.outer(e @ u, u)
+        s_k = scales[k] ** -1 + rng.standard_normal(draws) * scale_sd[k]  # scales holds c = 1/scale
+        mats[:, :, k] = u2 / np.linalg.norm(u2, axis=1, keepdims=True) / s_k[:, None]
+    par, ok = decompose_many(np.asarray(np.linalg.inv(mats), float))
+    return np.std(par[ok], axis=0)
 
 
 def _static_before_after(seg: Segmentation, iv: Interval) -> tuple[Interval, Interval] | None:
@@ -195,7 +213,7 @@ def gyro_scale_from_phases(segs: list[Segmentation], o: Array, axes: dict[int, t
     den: dict[int, float] = {}
     for s in segs:
         for ph in s.phases:
-            if ph.axis not in axes or s.gapped(ph):
+            if ph.axis not in axes or s.gapped(ph) or s.noisy(ph):
                 continue
             pa = phase_angle(s, ph, acc, mag)
             if pa is None:
@@ -235,12 +253,15 @@ def ordered_product(R: Array) -> Array:
     return R[:, 0]
 
 
+MAX_TRANSITION_S = 60.0
+
+
 @dataclass
 class _Transitions:
     increments: list[Array]  # per motion (n_i, 3): raw-rate·dt minus bias·dt
     pairs: list[tuple[int, Array, Array, float]]  # (motion index, before, after, σ)
 
-    def buckets(self) -> list[tuple[Array, Array]]:
+    def buckets(self) -> list[tuple[NDArray[np.intp], Array]]:
         """Motions grouped by power-of-two padded length: (motion indices, increments (S, L, 3)).
 
         Grouping keeps the zero padding (identity steps) small when one motion is much longer."""
@@ -262,7 +283,9 @@ def _collect_transitions(segs: list[Segmentation], o: Array, acc: SensorCalibrat
     pairs = []
     for s in segs:
         for iv in s.motions:
-            if s.gapped(iv):
+            # A motion of minutes (a whole flight between two ground rests) integrates the bias error
+            # into the attitude (σ_o · T) and costs the fit its time: eq. 36 takes turns, not journeys.
+            if s.gapped(iv) or s.noisy(iv) or iv.duration > MAX_TRANSITION_S:
                 continue
             vecs = _vectors(s, acc, mag, iv)
             if not vecs:
@@ -331,13 +354,39 @@ def fit_gyro_rate_table(raw_means: Array, rates_body: Array) -> SensorCalibratio
     return SensorCalibration(o, np.linalg.inv(Ginv))
 
 
+MIN_INTEGRATION_RATE = 20.0  # Hz: below it no step integrates the gyro (hand and vehicle turns reach 5–10 Hz)
+
+
 def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: SensorCalibration | None,
-                  rng: np.random.Generator) -> tuple[SensorCalibration, StepReport]:
-    """The tool-free gyro pipeline: bias (34–35) → axes (28–31) → scale (36) → eq. 36 over all motions."""
+                  rng: np.random.Generator, g: float = 9.80665) -> tuple[SensorCalibration, StepReport]:
+    """The tool-free gyro pipeline: bias (34–35) → axes (28–31) → scale (36) → eq. 36 over all motions;
+    where neither phases about all three axes nor four rest-to-rest motions exist (a hand-held session),
+    eq. 36 generalised to any rotation (:func:`fit_gyro_kinematic`). Where none of these can run, the
+    scale and axes are *undetermined*: the matrix stays the identity, its σ is absent, and
+    ``figures["undetermined"]`` lists the terms with a warning naming the missing motion.
+    """
     rep = StepReport("gyro")
-    o, sig_o = gyro_bias_cumsum(segs)
-    axes = gyro_axes_from_phases(segs, o)
-    scales = gyro_scale_from_phases(segs, o, axes, acc, mag)
+    try:
+        o, sig_o = gyro_bias_cumsum(segs)
+        bias_from = "rests (eqs. 34-35)"
+    except FitError:
+        o, sig_o, bias_from = None, None, None
+    rates = [s.data.imu_rate for s in segs if s.data.n_imu >= 2 and np.isfinite(s.data.imu_rate)]
+    rate = max(rates, default=float("nan"))
+    if not rate >= MIN_INTEGRATION_RATE:
+        # Integrating a hand's or a vehicle's turns (eq. 36) needs samples well inside their bandwidth;
+        # a 1 Hz telemetry stream gives a number like a gyro scale of 0.000017, not a calibration.
+        rep.warnings.append(f"gyro: the IMU is logged at {rate:.2g} Hz, too slow to integrate turns (need ≥ "
+                            f"{MIN_INTEGRATION_RATE:.0f} Hz): gyro scale and axes undetermined (matrix left at "
+                            "identity, NOT a calibration)" + ("" if o is not None else "; no rest for the bias"))
+        rep.figures.update({"undetermined": ["scale", "alpha", "xi"], "method": "none (bias only)",
+                            "imu_rate_hz": rate})
+        if o is None or sig_o is None:
+            raise FitError(f"gyro: IMU at {rate:.2g} Hz is too slow to integrate and no rest gives the bias")
+        return SensorCalibration(o, np.eye(3), {"bias": sig_o.tolist()}), rep
+    o_axes = o if o is not None else np.median(np.concatenate([s.data.gyro for s in segs]), axis=0)
+    axes = gyro_axes_from_phases(segs, o_axes) if o is not None else {}
+    scales = gyro_scale_from_phases(segs, o, axes, acc, mag) if o is not None else {}
     rep.figures["phase_axes"] = "".join("xyz"[k] for k in sorted(axes))
     rep.figures["phase_scales"] = {"xyz"[k]: 1.0 / c for k, c in sorted(scales.items())}
     cols = []
@@ -348,34 +397,200 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     G_paper = np.linalg.inv(np.column_stack(cols))
     rep.figures["paper_matrix"] = G_paper.tolist()
     missing = [k for k in range(3) if k not in scales or k not in axes]
-    try:
-        G_ref, cov, rms, n = refine_gyro_matrix(segs, o, G_paper, acc, mag)
-        rep.figures.update({"refined_transitions": n, "refined_residual_rms": rms,
-                            "refined_vs_paper": float(np.linalg.norm(G_ref - G_paper) / np.linalg.norm(G_paper))})
-    except FitError as e:
-        G_ref, cov = None, np.full((9, 9), np.nan)
-        rep.figures["refined_transitions"] = 0
-        if missing:
-            rep.warnings.append(f"gyro: no usable phase about {''.join('xyz'[k] for k in missing)} "
-                                f"and {e}; that axis keeps scale of the others' mean and no misalignment")
-    # The paper's phase-based estimate wherever phases cover all three axes (it is the more precise:
-    # it does not inherit the accel/mag alignment); the all-transitions fit otherwise.
-    G = G_paper if (not missing or G_ref is None) else G_ref
-    rep.figures["method"] = "phases (eqs. 28-31, 36)" if G is G_paper else "all transitions (eq. 36 generalised)"
-    # σ: the transitions fit's covariance, drawn through the decomposition. For the phase method that is
-    # an upper bound: it serves for the scale (eq. 36 compares the same reference angles), but the axis
+    G_ref, cov = None, np.full((9, 9), np.nan)
+    ref_err = ""
+    if o is not None:
+        try:
+            G_ref, cov, rms, n = refine_gyro_matrix(segs, o, G_paper, acc, mag)
+            rep.figures.update({"refined_transitions": n, "refined_residual_rms": rms,
+                                "refined_vs_paper": float(np.linalg.norm(G_ref - G_paper) / np.linalg.norm(G_paper))})
+        except FitError as e:
+            rep.figures["refined_transitions"] = 0
+            ref_err = str(e)
+    sigma: dict[str, Any] = {}
+    if missing and G_ref is None:
+        # Any rotation: the field (and gravity while quasi-static) seen from the turning body.
+        try:
+            G_k, o_k, cov12, figs = fit_gyro_kinematic(segs, mag, acc, g)
+        except FitError as e:
+            what = "".join("xyz"[k] for k in missing)
+            rep.warnings.append(
+                f"gyro: scale and axes undetermined (no rotation phase about {what}; {ref_err or 'no rests'}; {e}): "
+                "the matrix is left at identity and is NOT a calibration; record turns about all three axes "
+                "(a rest before and after each, or with the magnetometer logging)")
+            rep.figures["undetermined"] = ["scale", "alpha", "xi"]
+            rep.figures["method"] = "none (bias only)"
+            if o is None or sig_o is None:
+                raise FitError(f"gyro: no rest for the bias and {e}") from e
+            sigma["bias"] = sig_o.tolist()
+            return SensorCalibration(o, np.eye(3), sigma), rep
+        rep.figures["any_rotation"] = figs
+        rep.figures["method"] = "any rotation (eq. 36 generalised: v' = v x w, v the field or gravity)"
+        Gi = np.linalg.inv(G_k)
+        sig_b = np.sqrt(np.abs(np.diag(Gi @ cov12[9:, 9:] @ Gi.T)))
+        if o is not None:
+            rep.figures["bias_rests_minus_any_rotation"] = (o - o_k).tolist()
+        o, sig_o, bias_from = o_k, sig_b, "any rotation, fitted with the matrix"
+        G, cov = G_k, cov12[:9, :9]
+        use_phase_sigma = False
+    else:
+        if o is None:
+            raise FitError("gyro bias: no static interval (need a rest to fit eqs. 34–35)")
+        # The paper's phase-based estimate wherever phases cover all three axes (it is the more precise:
+        # it does not inherit the accel/mag alignment); the all-transitions fit otherwise.
+        G = G_paper if (not missing or G_ref is None) else G_ref
+        rep.figures["method"] = ("phases (eqs. 28-31, 36)" if G is G_paper
+                                 else "all transitions (eq. 36 generalised)")
+        use_phase_sigma = G is G_paper and not missing
+    rep.figures["bias_from"] = bias_from
+    # σ: the fit's covariance, drawn through the decomposition. For the phase method that is an upper
+    # bound: it serves for the scale (eq. 36 compares the same reference angles), but the axis
     # directions of eqs. 28–31 are known from the phases' own sample scatter — 10–20× tighter on the
     # simulated paper session, where the bound was 10–20× the actual error of alpha and xi (a batch-started
     # filter holds those as consider states: an inflated σ there costs the other terms information).
-    sigma: dict[str, list[float]] = {"bias": sig_o.tolist()}
+    sigma["bias"] = np.asarray(sig_o).tolist()
     if np.all(np.isfinite(cov)):
         L = sqrt_psd(cov)
-        draws = [np.concatenate(decompose((G.ravel() + L @ rng.standard_normal(9)).reshape(3, 3)))
-                 for _ in range(48)]
-        sd = np.std(draws, axis=0)
-        if G is G_paper and not missing:
+        par, ok = decompose_many((G.ravel() + rng.standard_normal((48, 9)) @ L.T).reshape(-1, 3, 3))
+        if ok.mean() < 0.9:
+            # the fit's uncertainty reaches a singular matrix: scale and axes are not determined
+            cov = np.full((9, 9), np.nan)
+            ref_err = ref_err or "the fit's σ reaches a singular gyro matrix"
+    if np.all(np.isfinite(cov)):
+        sd = np.std(par[ok], axis=0)
+        if use_phase_sigma:
             sd[3:] = phase_matrix_sigma(axes, scales, sd[:3], rng)[3:]
             rep.figures["sigma_angles"] = "phase scatter (eqs. 28-31)"
         sigma.update({"scale": sd[:3].tolist(), "alpha": sd[3:6].tolist(), "xi": sd[6:].tolist(),
                       "matrix": np.sqrt(np.diag(cov)).reshape(3, 3).tolist()})
+    else:
+        rep.figures["undetermined"] = ["scale", "alpha", "xi"]
+        what = "".join("xyz"[k] for k in missing)
+        why = (f": no usable phase about {what}" if what else "") + (f"; {ref_err}" if ref_err else "")
+        rep.warnings.append(f"gyro: scale and axes undetermined (σ absent){why}; the matrix is NOT a calibration")
     return SensorCalibration(o, G, sigma), rep
+
+
+# -- any rotation: a world-fixed vector seen from the turning body (ṁ = −ω × m) ----------------------------
+
+_EPS = np.zeros((3, 3, 3))
+_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
+_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
+
+
+def _kinematic_rows(t: Array, w: Array, v: Array, ok: NDArray[np.bool_], win: int,
+                    chunk: int = 40000) -> tuple[Array, Array, Array]:
+    """Equations of one log for :func:`fit_gyro_kinematic`: over each window of ``win`` samples,
+    ``v(t_b) − v(t_a) = ∫ v × ω dt`` with ``ω = G w − b`` (the body frame sees a world-fixed unit vector v
+    turn as v̇ = −ω × v = v × ω; exact for any rotation, integrated by the trapezoid rule).
+
+    t (N,), w (N, 3) raw rate, v (N, 3) unit vector at the IMU times, ok (N,) usable samples.
+    Returns (A (3K, 12) for the unknowns vec(G) row-major and b, y (3K,), window start index (K,)).
+    Worked in chunks of about ``chunk`` samples: memory stays bounded for any log length.
+    """
+    n = t.size
+    bad = np.concatenate([[0], np.cumsum(~ok)])
+    starts = np.arange(0, n - win, win)
+    good = (bad[starts + win + 1] - bad[starts]) == 0
+    starts = starts[good]
+    if starts.size == 0:
+        return np.zeros((0, 12)), np.zeros(0), starts
+    per = max(1, chunk // win)
+    A = np.empty((starts.size, 3, 12))
+    for c0 in range(0, starts.size, per):
+        st = starts[c0:c0 + per]
+        lo, hi = int(st[0]), int(st[-1]) + win + 1
+        vv, ww = v[lo:hi], w[lo:hi]
+        m = hi - lo
+        # v × (G w) = [v]× G w: entry i is Σ_jk ε_ijk v_j Σ_l G_kl w_l → coefficient of G_kl is [v]×_ik w_l
+        vx = np.einsum("ijk,nj->nik", _EPS, vv)  # [v]× per sample (m, 3, 3)
+        blk = np.concatenate([(vx[:, :, :, None] * ww[:, None, None, :]).reshape(m, 3, 9), -vx], axis=2)
+        trap = 0.5 * (blk[1:] + blk[:-1]) * np.diff(t[lo:hi])[:, None, None]
+        c = np.concatenate([np.zeros((1, 3, 12)), np.cumsum(trap, axis=0)])
+        A[c0:c0 + per] = c[st - lo + win] - c[st - lo]
+    y = (v[starts + win] - v[starts]).ravel()
+    return A.reshape(-1, 12), y, starts
+
+
+def fit_gyro_kinematic(segs: list[Segmentation], mag: SensorCalibration | None, acc: SensorCalibration | None,
+                       g: float, window_s: float = 0.5, quasi_static: float = 0.3
+                       ) -> tuple[Array, Array, Array, dict]:
+    """Gyro matrix G and bias o from any rotation (eq. 36 generalised to a continuum of short spans).
+
+    A world-fixed vector v seen in the body frame obeys v̇ = v × ω (ω = G (w_raw − o)): the calibrated,
+    normalised magnetometer always (its field is world-fixed), and the calibrated accelerometer where
+    the unit is quasi-static (moving std over 0.5 s below ``quasi_static`` m/s² and ‖a‖ within
+    ``quasi_static`` of g: gravity). Integrated over windows of ``window_s``,
+    ``v(t_b) − v(t_a) = Σ v × (G w − b) dt`` is linear in the 12 unknowns (G, b = G o): one least-squares
+    solve, windows beyond 5 MAD (a disturbance, a knock) dropped and the solve repeated. Bias, scale,
+    misalignment, non-orthogonality, a wrong axis sign and a mounting rotation of any angle are all
+    inside G. G comes out in the frame of the reference vectors (the magnetometer's when it is given).
+
+    Returns (G (3, 3), o (3,), covariance of (vec G, b) (12, 12), figures). Raises FitError when the
+    rotation seen does not determine all 12 unknowns (the smallest singular value of the design names
+    the unexcited direction).
+    """
+    As, ys, src = [], [], []
+    for s in segs:
+        d = s.data
+        if d.n_imu < 50:
+            continue
+        win = max(2, int(round(window_s * d.imu_rate)))
+        t = d.t_imu
+        refs = []
+        if mag is not None and d.n_mag >= 20:
+            m = mag.apply(d.mag)
+            m /= np.linalg.norm(m, axis=1, keepdims=True)
+            v = np.column_stack([np.interp(t, d.t_mag, m[:, k]) for k in range(3)])
+            v /= np.linalg.norm(v, axis=1, keepdims=True)
+            # usable where a mag sample lies within 2 mag periods (no bridging of mag gaps)
+            per = (d.t_mag[-1] - d.t_mag[0]) / max(1, d.n_mag - 1)
+            j = np.clip(np.searchsorted(d.t_mag, t), 1, d.n_mag - 1)
+            near = np.minimum(np.abs(t - d.t_mag[j - 1]), np.abs(d.t_mag[j] - t)) <= 2 * per
+            ok = near & (t >= d.t_mag[0]) & (t <= d.t_mag[-1])
+            refs.append(("mag", v, ok))
+        if acc is not None and mag is None:
+            a = acc.apply(d.acc)
+            _, sd = moving_std(a, max(5, int(round(0.5 * d.imu_rate))))
+            nrm = np.linalg.norm(a, axis=1)
+            ok = (np.linalg.norm(sd, axis=1) < quasi_static) & (np.abs(nrm - g) < quasi_static)
+            refs.append(("accel", a / nrm[:, None], ok))
+        for name, v, ok in refs:
+            A, y, _ = _kinematic_rows(t, d.gyro, v, ok, win)
+            if A.shape[0]:
+                As.append(A)
+                ys.append(y)
+                src.append((d.source, name, A.shape[0] // 3))
+    if not As:
+        raise FitError("gyro (any rotation): no span with a reference vector (magnetometer, or accelerometer "
+                       "while quasi-static)")
+    A = np.concatenate(As)
+    y = np.concatenate(ys)
+    keep = np.ones(A.shape[0] // 3, bool)
+    for _ in range(3):
+        rows = np.repeat(keep, 3)
+        x, *_ = np.linalg.lstsq(A[rows], y[rows], rcond=None)
+        r = (y - A @ x).reshape(-1, 3)
+        rn = np.linalg.norm(r, axis=1)
+        lim = 5 * 1.4826 * np.median(rn[keep]) + 1e-12
+        new = rn <= lim
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    rows = np.repeat(keep, 3)
+    sv = np.linalg.svd(A[rows], compute_uv=False)
+    if sv[-1] < 1e-6 * sv[0]:
+        raise FitError("gyro (any rotation): the rotations seen do not determine every gyro term (turn the unit "
+                       "about all three axes)")
+    r = y[rows] - A[rows] @ x
+    dof = max(1, r.size - 12)
+    s2 = float(r @ r / dof)
+    # Adjacent windows share an end point (its noise enters both with opposite sign): σ is inflated by
+    # √2 to stay on the safe side of that correlation.
+    cov = np.linalg.inv(A[rows].T @ A[rows]) * s2 * 2.0
+    G = x[:9].reshape(3, 3)
+    o = np.linalg.solve(G, x[9:])
+    figs = {"spans": int(keep.sum()), "spans_dropped": int((~keep).sum()), "window_s": window_s,
+            "residual_rms": float(np.sqrt(s2)), "references": sorted({n for _, n, _ in src}),
+            "condition": float(sv[0] / sv[-1])}
+    return G, o, cov, figs

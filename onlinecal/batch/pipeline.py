@@ -13,10 +13,36 @@ import numpy as np
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
 from ..specs import G0
+from .clean import clean_log
+from .clock import regularise_clock
 from .ellipsoid import FitError
 from .gyro import fit_gyroscope
 from .segment import Segmentation, noise_floors, segment
-from .sensors import StepReport, distinct_directions, fit_accelerometer, fit_magnetometer, static_means
+from .sensors import (
+    StepReport,
+    dip_outliers,
+    distinct_directions,
+    fit_accelerometer,
+    fit_magnetometer,
+    mag_to_accel_rotation,
+    static_means,
+)
+
+
+def _drop_sigma(c: SensorCalibration, st: StepReport | None) -> SensorCalibration:
+    """``c`` without σ for the terms its step lists as undetermined."""
+    und = set(st.figures.get("undetermined", [])) if st is not None else set()
+    if not und:
+        return c
+    return SensorCalibration(c.bias, c.matrix, {k: v for k, v in c.sigma.items() if k not in und and k != "matrix"})
+
+
+def _rotated_sigma(sigma: dict, extra_deg: float) -> dict:
+    """σ of a sensor whose frame was turned by a rotation known to ``extra_deg`` (1σ): alpha widened."""
+    out = {k: np.asarray(v, float) for k, v in sigma.items()}
+    if "alpha" in out:
+        out["alpha"] = np.hypot(out["alpha"], np.radians(extra_deg))
+    return out
 
 
 @dataclass
@@ -51,6 +77,14 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
         raise FitError("no IMU samples in the logs")
     # Reader warnings carry no file name; with several logs of one unit the user must know which one.
     warnings: list[str] = [w if d.source in w else f"{d.source}: {w}" for d in logs for w in d.warnings]
+    clocked = [regularise_clock(d) for d in logs]
+    logs = [c[0] for c in clocked]
+    for _, notes in clocked:
+        warnings += notes
+    cleaned = [clean_log(d) for d in logs]
+    logs = [c.data for c in cleaned]
+    for cl in cleaned:
+        warnings += cl.warnings
     floors = noise_floors(logs)
     segs = [segment(d, floors) for d in logs]
     # Too few true rests (hand-held campaigns): fall back to quasi-static rests for the fits that need
@@ -70,7 +104,8 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
             for s_strict, s_rel in zip(segs, relaxed, strict=True):
                 s_rel.bias_rests = s_strict.statics
             segs = relaxed
-    for s in segs:
+    for s, cl in zip(segs, cleaned, strict=True):
+        s.bursts = cl.bursts
         warnings += s.warnings
     warnings = list(dict.fromkeys(warnings))
     steps: dict[str, StepReport] = {}
@@ -86,15 +121,57 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
         acc, steps["accel"] = fit_accelerometer(segs, g, rng)
     except FitError as e:
         warnings.append(f"accel step skipped: {e}")
+    if acc is not None and mag is not None:
+        n_dip, where = dip_outliers(segs, acc, mag)
+        if n_dip:
+            warnings.append(f"mag: {n_dip} samples at {len(where)} rest(s) whose field direction disagrees with "
+                            "the others (a disturbance) excluded and the magnetometer refitted: "
+                            + "; ".join(where[:5]))
+            first = steps["mag"]
+            try:
+                mag, steps["mag"] = fit_magnetometer(segs, rng)
+                steps["mag"].warnings[:0] = first.warnings
+                steps["mag"].figures["outliers"] += first.figures["outliers"] + n_dip
+            except FitError as e:
+                mag = None
+                warnings.append(f"mag step skipped: {e}")
+    mag_ref = mag if mag is not None and not (steps["mag"].figures.get("degenerate")
+                                              or steps["mag"].figures.get("partial_coverage")) else None
+    if acc is not None and mag_ref is not None and len(steps["mag"].figures.get("aligned_axes", "")) < 2:
+        # The phases could not put the magnetometer on the accelerometer's axes (eqs. 25–27): the
+        # constant angle between gravity and the field at quasi-static attitudes can, at any angle.
+        try:
+            P, figs = mag_to_accel_rotation(segs, acc, mag_ref, g)
+            mag = mag_ref = SensorCalibration(mag_ref.bias, P @ mag_ref.matrix,
+                                              _rotated_sigma(mag_ref.sigma, figs["sigma_deg"]))
+            steps["mag"].figures["to_accel_rotation"] = figs
+            # its alignment is now that of the accelerometer (whose own alpha may stay undetermined)
+            steps["mag"].figures["undetermined"] = [u for u in steps["mag"].figures.get("undetermined", [])
+                                                    if u != "alpha"]
+            warnings.append(f"mag: rotation phases could not align the magnetometer to the other sensors; its frame "
+                            f"is turned by {figs['angle_deg']:.1f}° (σ {figs['sigma_deg']:.2f}°) onto the "
+                            f"accelerometer's, from the gravity-field angle at {figs['attitude_cells']} quasi-static "
+                            "attitudes")
+        except FitError as e:
+            warnings.append(f"mag: not aligned to the accelerometer ({e}); the two frames may differ")
     try:
-        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag, rng)
+        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag_ref, rng, g)
     except FitError as e:
         warnings.append(f"gyro step skipped: {e}")
     for st in steps.values():
         warnings += st.warnings
+    undetermined = [f"{k}.{p}" for k, st in steps.items() for p in st.figures.get("undetermined", [])]
+    # A term that the data could not determine carries no σ (contract: σ where known) — never a guess
+    # presented as a result; meta.batch.undetermined lists it.
+    gyro, acc, mag = (None if c is None else _drop_sigma(c, steps.get(n)) for c, n in
+                      ((gyro, "gyro"), (acc, "accel"), (mag, "mag")))
     if gyro is None and acc is None and mag is None:
         raise FitError("; ".join(warnings) or "no sensor could be calibrated")
     res = BatchResult(Calibration(gyro=gyro, accel=acc, mag=mag, source="batch"), segs, steps, warnings)
-    cal = res.calibration.replace(meta={"batch": res.summary()}, gauge="gyro_phases" if gyro is not None and str(steps["gyro"].figures.get("method", "")).startswith("phases") else None)  # noqa: E501 (B: model.Gauge)
+    summary = res.summary()
+    summary["undetermined"] = undetermined  # terms whose value is NOT a calibration (σ absent)
+    # B (model.Gauge) is the gyro's rotation-phase frame where the phase method gave the gyro matrix
+    phases = gyro is not None and str(steps["gyro"].figures.get("method", "")).startswith("phases")
+    cal = res.calibration.replace(meta={"batch": summary}, gauge="gyro_phases" if phases else None)
     res.calibration = cal
     return res

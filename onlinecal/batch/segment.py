@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from ..io.base import ImuData
 
 Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True)
@@ -68,11 +69,16 @@ class Segmentation:
     max_gap: float
     warnings: list[str] = field(default_factory=list)
     bias_rests: list[Interval] | None = None  # strict rests for the gyro bias when statics are relaxed
+    bursts: list[tuple[int, int]] = field(default_factory=list)  # gyro noise bursts, IMU rows [i0, i1)
 
     @property
     def rests(self) -> list[Interval]:
         """True rests (for the gyro bias): the strict statics even when ``statics`` are quasi-static."""
         return self.statics if self.bias_rests is None else self.bias_rests
+
+    def noisy(self, iv: Interval) -> bool:
+        """True where a gyro noise burst (:func:`~onlinecal.batch.clean.noise_bursts`) overlaps ``iv``."""
+        return any(a < iv.i1 and b > iv.i0 for a, b in self.bursts)
 
     def gapped(self, iv: Interval, factor: float = 5.0) -> bool:
         """True where the logger dropped samples inside ``iv`` (a gap > factor × median period)."""
@@ -127,6 +133,29 @@ def noise_floors(logs: list[ImuData], window_s: float = WINDOW_S) -> tuple[float
     return max(min(g, default=0.0), 2e-4), max(min(a, default=0.0), 2e-3)
 
 
+STILL_GYRO_CAP = 0.03  # rad/s, windowed std summed over axes
+STILL_ACC_CAP = 0.3  # m/s²
+
+
+def _powered(data: ImuData) -> BoolArray:
+    """(N,) True at IMU samples where the log says the vehicle is armed or its throttle is above 5 %.
+
+    Uses optional series on the log data when a reader provides them (``t_armed``/``armed``,
+    ``t_throttle``/``throttle`` in 0–1 or 0–100 %), each held from one record to the next; all False
+    without them. A powered vehicle is not at rest, however still its IMU looks."""
+    out = np.zeros(data.n_imu, bool)
+    for tn, vn, lim in (("t_armed", "armed", 0.5), ("t_throttle", "throttle", None)):
+        t, v = getattr(data, tn, None), getattr(data, vn, None)
+        if t is None or v is None or len(t) == 0 or data.n_imu == 0:
+            continue
+        t, v = np.asarray(t, float), np.asarray(v, float)
+        if lim is None:
+            lim = 5.0 if np.nanmax(v) > 1.5 else 0.05  # percent or fraction
+        j = np.clip(np.searchsorted(t, data.t_imu, side="right") - 1, 0, t.size - 1)
+        out |= (v[j] > lim) & (data.t_imu >= t[0])
+    return out
+
+
 def find_statics(
     data: ImuData,
     floors: tuple[float, float] | None = None,
@@ -147,7 +176,11 @@ def find_statics(
     rate = data.imu_rate
     gm, g_std, a_std = _window_std(data, window_s)
     g_floor, a_floor = floors if floors is not None else noise_floors([data], window_s)
-    quiet = (g_std < 4 * g_floor + 2e-3) & (a_std < 4 * a_floor + 0.02)
+    # Absolute caps as well as the floors: a log that never rests (a flight) has its vibration as its
+    # own floor, and a hover would pass a floor-relative test. No calibration rest shakes more than
+    # 0.3 m/s² or 0.03 rad/s (summed windowed std); rotor vibration on a healthy frame is several m/s².
+    quiet = ((g_std < 4 * g_floor + 2e-3) & (a_std < 4 * a_floor + 0.02)
+             & (g_std < STILL_GYRO_CAP) & (a_std < STILL_ACC_CAP) & ~_powered(data))
     if not quiet.any():
         return [], g_floor, a_floor, np.zeros(3)
     bias = np.median(data.gyro[quiet], axis=0)
@@ -155,7 +188,7 @@ def find_statics(
     rate_dev = np.linalg.norm(gm - bias, axis=1)
     still = quiet & (rate_dev < max(0.02, 8 * g_floor))
     if relaxed:
-        still = (a_std < max(0.25, 4 * a_floor + 0.02)) & (rate_dev < 0.1)
+        still = (a_std < max(0.25, 4 * a_floor + 0.02)) & (rate_dev < 0.1) & (a_std < STILL_ACC_CAP) & ~_powered(data)
         min_duration_s = min(min_duration_s, 0.5)
     margin = int(round(margin_s * rate))
     out: list[Interval] = []

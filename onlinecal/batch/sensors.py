@@ -3,17 +3,23 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..model import SensorCalibration, decompose
+from ..model import SensorCalibration
 from .align import phase_plane_normal, rotation_to_axes
-from .ellipsoid import FitError, NormFit, fit_ellipsoid_svd, fit_norm_lm, sqrtm_spd, sym_from_vec
+from .decomp import decompose_many
+from .ellipsoid import FitError, NormFit, fit_ellipsoid_svd, fit_norm_lm, sphere_bin_weights, sqrtm_spd
 from .segment import Phase, Segmentation, moving_std
 
 Array = NDArray[np.float64]
+
+_IU = np.triu_indices(3)
+# Generators of so(3): a @ _SKEW = [a]×.
+_SKEW = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]], [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
+                  [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], float)
 
 
 @dataclass
@@ -43,17 +49,16 @@ def propagate_sigma(
         return {"bias": np.sqrt(np.abs(np.diag(cov9))[:3]).tolist()}
     L = sqrt_psd(cov9)
     p0 = np.concatenate([o, M[np.triu_indices(3)]])
-    draws = []
-    for _ in range(n):
-        p = p0 + L @ rng.standard_normal(9)
-        a = rng.normal(0, sig_align, 3)
-        Ra = np.eye(3) + np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-        try:
-            s, al, xi = decompose(Ra @ Q @ sym_from_vec(p[3:]))
-        except ValueError:
-            continue
-        draws.append(np.concatenate([p[:3], s, al, xi]))
-    d = np.array(draws)
+    p = p0 + rng.standard_normal((n, 9)) @ L.T
+    a = rng.normal(0, sig_align, (n, 3))
+    Ra = np.eye(3) + np.einsum("nk,kij->nij", a, _SKEW)
+    Ms = np.zeros((n, 3, 3))
+    Ms[:, _IU[0], _IU[1]] = p[:, 3:]
+    Ms = Ms + np.triu(Ms, 1).transpose(0, 2, 1)
+    par, ok = decompose_many(Ra @ Q @ Ms)  # closed form, all draws at once
+    if ok.mean() < 0.9:  # the draws reach across a singular matrix: no σ of the split is meaningful
+        return {"bias": np.sqrt(np.abs(np.diag(cov9))[:3]).tolist()}
+    d = np.concatenate([p[ok, :3], par[ok]], axis=1)
     sd = d.std(axis=0)
     return {"bias": sd[:3].tolist(), "scale": sd[3:6].tolist(), "alpha": sd[6:9].tolist(),
             "xi": sd[9:12].tolist()}
@@ -83,10 +88,11 @@ def _align(
             acc.setdefault(ph.axis, []).append((n, radius**2 * v.shape[0]))
     normals = {}
     for k, lst in acc.items():
-        n = sum(w * n for n, w in lst)
+        n = np.sum([w * n for n, w in lst], axis=0)
         normals[k] = (n / np.linalg.norm(n), float(sum(w for _, w in lst)))
     report.figures["aligned_axes"] = "".join("xyz"[k] for k in sorted(normals))
     if len(normals) < 2:
+        report.figures["undetermined"] = ["alpha"]
         report.warnings.append(
             f"{report.name}: rotation phases usable for alignment about {len(normals)} "
             f"{'axis' if len(normals) == 1 else 'axes'} (need 2): T_R is "
@@ -112,32 +118,195 @@ def _acc_samples(seg: Segmentation, ph: Phase) -> Array:
     return _lpf(seg.data.acc[ph.i0 : ph.i1], w)
 
 
+def _runs_text(t: Array, bad: NDArray[np.bool_], gap: float = 1.0) -> tuple[int, str]:
+    """Stretches of ``bad`` samples (times t) merged across gaps < ``gap`` s: (count, "t0–t1 s, …")."""
+    tb = t[bad]
+    if tb.size == 0:
+        return 0, ""
+    cut = np.flatnonzero(np.diff(tb) > gap)
+    starts = np.concatenate([[tb[0]], tb[cut + 1]])
+    ends = np.concatenate([tb[cut], [tb[-1]]])
+    txt = ", ".join(f"{a:.1f}–{b:.1f} s" for a, b in list(zip(starts, ends, strict=True))[:5])
+    return int(starts.size), txt + (" …" if starts.size > 5 else "")
+
+
+MIN_COVERAGE = 0.2  # smallest eigenvalue of the binned E[u uᵀ] of calibrated field directions
+
+
+def _lm_diverged(fit: NormFit, o0: Array, M0: Array) -> bool:
+    """True when LM moved the centre by more than 0.3 field radii or a singular value of M by more than
+    30 % from the algebraic start: a degenerate valley, not a refinement (eq. 17 refines; it does not
+    re-decide the ellipsoid)."""
+    step = float(np.linalg.norm(M0 @ (fit.o - o0)))
+    s0, s1 = np.linalg.svd(M0, compute_uv=False), np.linalg.svd(fit.M, compute_uv=False)
+    return step > 0.3 or bool(np.any(np.abs(s1 / s0 - 1) > 0.3))
+
+
+def _close_stretches(t: Array, fid: Array, bad: NDArray[np.bool_], gap: float) -> NDArray[np.bool_]:
+    """``bad`` with the samples between two bad ones of the same file less than ``gap`` s apart set too:
+    inside a disturbance the norm can pass through its undisturbed value (an added field at the right
+    angle), and those samples are just as wrong."""
+    out = bad.copy()
+    i = np.flatnonzero(bad)
+    if i.size < 2:
+        return out
+    close = (np.diff(t[i]) < gap) & (fid[i[1:]] == fid[i[:-1]]) & (np.diff(i) > 1)
+    for a, b in zip(i[:-1][close], i[1:][close], strict=True):
+        out[a:b] = True
+    return out
+
+
+def dip_outliers(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCalibration,
+                 tol_deg: float = 3.0) -> tuple[int, list[str]]:
+    """Rests whose field direction disagrees with the others: the angle between calibrated gravity and the
+    calibrated field (the dip) is the same at every attitude; a rest whose dip differs by more than
+    ``tol_deg`` from the median (a disturbance whose norm happens to look right) loses its mag samples
+    (``seg.data`` is replaced). Returns (samples removed, one line per rest)."""
+    rows = []
+    for sg in segs:
+        d = sg.data
+        for iv in sg.statics:
+            m = (d.t_mag >= iv.t0) & (d.t_mag <= iv.t1)
+            if m.sum() < 3:
+                continue
+            a = acc.apply(d.acc[iv.i0:iv.i1].mean(0))
+            f = mag.apply(d.mag[m]).mean(0)
+            dip = float(np.degrees(np.arccos(np.clip(a @ f / np.linalg.norm(a) / np.linalg.norm(f), -1, 1))))
+            rows.append((sg, iv, m, dip))
+    if len(rows) < 4:
+        return 0, []
+    med = float(np.median([r[3] for r in rows]))
+    n, lines = 0, []
+    drop: dict[int, tuple[Segmentation, NDArray[np.bool_]]] = {}
+    for sg, iv, m, dip in rows:
+        if abs(dip - med) > tol_deg:
+            n += int(m.sum())
+            prev = drop.get(id(sg), (sg, np.zeros_like(m)))[1]
+            drop[id(sg)] = (sg, prev | m)
+            lines.append(f"{sg.data.source} {iv.t0:.1f}–{iv.t1:.1f} s (dip {dip:.1f}° against {med:.1f}°)")
+    for sg, m in drop.values():
+        sg.data = replace(sg.data, t_mag=sg.data.t_mag[~m], mag=sg.data.mag[~m])
+    return n, lines
+
+
 def fit_magnetometer(
-    segs: list[Segmentation], rng: np.random.Generator
+    segs: list[Segmentation], rng: np.random.Generator, field_tol: float = 0.05,
 ) -> tuple[SensorCalibration, StepReport]:
     """Magnetometer: SVD ellipsoid fit (eqs. 19–24) → LM on eq. 17 → T_R,mag from phases (eqs. 25–27).
 
-    Every mag sample of every log counts for the ellipsoid; the field norm is 1 by definition.
+    The field norm is 1 by definition. Samples are weighted by attitude coverage
+    (:func:`~onlinecal.batch.ellipsoid.sphere_bin_weights`, 10° cells, at most 30 samples per cell): a
+    10-minute rest counts as one attitude, and the fit's work is bounded whatever the log's length.
+    A file whose median calibrated norm differs from 1 by more than ``field_tol`` (another place, a
+    disturbance that lasts the whole file) is named in a warning and kept out of the shape fit; samples
+    beyond 5 MAD of the norm residual (a passing disturbance, a corrupt reading) are excluded and counted,
+    and removed from the segmentations' logs (``seg.data``) so that no later step uses them.
     """
     rep = StepReport("mag")
-    x = np.concatenate([s.data.mag for s in segs if s.data.has_mag])
+    with_mag = [s for s in segs if s.data.has_mag]
+    xs = [s.data.mag for s in with_mag]
+    x = np.concatenate(xs) if xs else np.zeros((0, 3))
+    fid = np.concatenate([np.full(len(v), i) for i, v in enumerate(xs)]) if xs else np.zeros(0, int)
+    tt = np.concatenate([s.data.t_mag for s in with_mag]) if xs else np.zeros(0)
     if x.shape[0] < 50:
         raise FitError(f"magnetometer: only {x.shape[0]} samples")
+    lo, hi = np.percentile(x, [1, 99], axis=0)
+    w0 = sphere_bin_weights(x - 0.5 * (lo + hi), per_bin=30)
     # An ellipsoid needs the field seen from directions spanning 3-D: a rest (a point) or a turn
     # about one axis (a circle) leaves it undetermined, and LM would return a degenerate answer.
-    ev = np.linalg.eigvalsh(np.cov(x.T))
+    sel = w0 > 0
+    ev = np.linalg.eigvalsh(np.cov(x[sel].T, aweights=w0[sel]))
     spread = float(np.sqrt(max(ev[0], 0.0)) / np.median(np.linalg.norm(x, axis=1)))
     if spread < 0.05:
         raise FitError(f"magnetometer: the field was seen from too few directions (least spread "
                        f"{100 * spread:.1f} % of the reading, need 5 %); turn the unit through all orientations")
-    o0, M0 = fit_ellipsoid_svd(x)
-    fit = fit_norm_lm(x, 1.0, o0, M0)
+    use = np.ones(x.shape[0], bool)
+    excluded: list[str] = []
+    for _ in range(3):
+        xu = x[use]
+        lo, hi = np.percentile(xu, [1, 99], axis=0)
+        w = sphere_bin_weights(xu - 0.5 * (lo + hi), per_bin=30)
+        o0, M0 = fit_ellipsoid_svd(xu, w)
+        w = sphere_bin_weights((xu - o0) @ M0.T, per_bin=30)
+        fit = fit_norm_lm(xu, 1.0, o0, M0, weights=w)
+        diverged = _lm_diverged(fit, o0, M0)
+        if diverged:
+            # The field seen over a band of directions (a flight's yaw turns with small tilts): many
+            # ellipsoids fit it, and LM slides along the valley to a huge one with a residual below the
+            # sensor's noise. The algebraic fit's answer is kept, with the covariance at that point.
+            fit = fit_norm_lm(xu, 1.0, o0, M0, weights=w, refine=False)
+        nrm_all = np.linalg.norm((x - fit.o) @ fit.M.T, axis=1)
+        # Per-file field strength: a file whose field differs is named and left out of the shape fit.
+        off = []
+        for i in range(len(with_mag)):
+            m = fid == i
+            med = float(np.median(nrm_all[m])) if m.any() else 1.0
+            if use[m].any() and abs(med - 1.0) > field_tol:
+                off.append((i, med))
+        if not off or use.sum() - sum((fid == i).sum() for i, _ in off) < 50:
+            break
+        worst = max(off, key=lambda v: abs(v[1] - 1))  # one at a time: a bad file distorts the others
+        use &= fid != worst[0]
+        excluded.append(f"{with_mag[worst[0]].data.source}: field {100 * (worst[1] - 1):+.0f} % against the other "
+                        "files (another place or a lasting disturbance); left out of the magnetometer fit")
+    rep.warnings += [f"mag: {e}" for e in excluded]
+    if diverged:
+        rep.figures["degenerate"] = True
+        rep.warnings.append("mag: the field was seen from a band of directions only (no full tumble): the geometric "
+                            "fit (eq. 17) is not determined and left the algebraic fit's answer by a field-sized "
+                            "step; the algebraic fit (eqs. 19-24) is kept and no later step uses the magnetometer "
+                            "as a direction reference")
     Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
     M = Q @ fit.M
-    norms = np.linalg.norm((x[fit.inliers] - fit.o) @ M.T, axis=1)
+    res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0
+    r_in = res[use]
+    mad = 1.4826 * float(np.median(np.abs(r_in - np.median(r_in))))
+    bad = use & (np.abs(res) > max(5 * mad, 0.02))
+    bad = _close_stretches(tt, fid, bad, 3.0) & use
+    if bad.any():
+        n_str, txt = _runs_text(tt, bad)
+        rep.warnings.append(f"mag: {int(bad.sum())} samples whose field norm is off by more than "
+                            f"{100 * max(5 * mad, 0.02):.1f} % (disturbance or corrupt readings) excluded, "
+                            f"in {n_str} stretch{'es' if n_str > 1 else ''}: {txt}")
+        # The excluded samples leave the logs for every later step too (the gyro's reference vectors).
+        for i, sg in enumerate(with_mag):
+            g_i = ~bad[fid == i]
+            if not g_i.all():
+                sg.data = replace(sg.data, t_mag=sg.data.t_mag[g_i], mag=sg.data.mag[g_i])
+        if bad[use].mean() > 0.01:
+            # Refit without them (the binned fit saw them at a low weight; a long disturbance
+            # should not bend the shape).
+            keep = use & ~bad
+            w = sphere_bin_weights((x[keep] - fit.o) @ fit.M.T, per_bin=30)
+            fit = fit_norm_lm(x[keep], 1.0, fit.o, fit.M, weights=w)
+            Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
+            M = Q @ fit.M
+            res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0
+    good = use & ~bad
+    norms = res[good] + 1.0
+    # Coverage of the calibrated field directions (attitude-binned): a full tumble gives a smallest
+    # eigenvalue of E[u uᵀ] near 1/3 (the paper session 0.30, the MARG set 0.30); a flight's yaw turns with
+    # ±20° tilts trace a band (0.10), over which the shape (scale, non-orthogonality) is not determined.
+    u = (x[good] - fit.o) @ M.T
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    wu = sphere_bin_weights(u, per_bin=5)
+    cover = float(np.linalg.eigvalsh((u * wu[:, None]).T @ u / wu.sum())[0])
+    rep.figures["coverage_min_eig"] = cover
+    if cover < MIN_COVERAGE and not diverged:
+        rep.figures["partial_coverage"] = True
+        rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | {"scale", "alpha", "xi"})
+        rep.warnings.append(f"mag: the field was seen over part of the sphere only (coverage {cover:.2f}, a full "
+                            f"tumble gives 0.3; need {MIN_COVERAGE}): its scale, alignment and non-orthogonality "
+                            "are not determined (σ absent) and no later step uses it as a direction reference; "
+                            "turn the unit through all orientations")
+    if diverged:
+        rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | {"scale", "alpha", "xi"})
     rep.figures.update({
         "samples": int(x.shape[0]),
-        "outliers": int((~fit.inliers).sum()),
+        "fit_samples": int((w > 0).sum()),
+        "outliers": int(bad.sum()),
+        "files_excluded": len(excluded),
+        "weighting": "attitude bins (10° cells, ≤ 30 samples each)",
         "norm_std_percent": float(100 * norms.std()),
         "raw_norm_std_percent": float(100 * np.linalg.norm(x - x.mean(0), axis=1).std()
                                       / np.linalg.norm(x - x.mean(0), axis=1).mean()),
@@ -211,3 +380,52 @@ def fit_accelerometer(
 
 
 __all__ = ["fit_magnetometer", "fit_accelerometer", "static_means", "StepReport", "sqrtm_spd", "sqrt_psd"]
+
+
+def quasi_static_pairs(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCalibration, g: float,
+                       tol: float = 0.3) -> tuple[Array, Array]:
+    """Calibrated (accel, mag) pairs at the IMU times where the unit is quasi-static (moving std over 0.5 s
+    below ``tol`` m/s² and ‖a‖ within ``tol`` of g), the mag interpolated onto those times (only where a
+    mag sample lies within two mag periods). Returns (a (K, 3), m (K, 3))."""
+    A, M = [], []
+    for sg in segs:
+        d = sg.data
+        if d.n_imu < 50 or d.n_mag < 20:
+            continue
+        a = acc.apply(d.acc)
+        _, sd = moving_std(a, max(5, int(round(0.5 * d.imu_rate))))
+        nrm = np.linalg.norm(a, axis=1)
+        t = d.t_imu
+        per = (d.t_mag[-1] - d.t_mag[0]) / max(1, d.n_mag - 1)
+        j = np.clip(np.searchsorted(d.t_mag, t), 1, d.n_mag - 1)
+        near = np.minimum(np.abs(t - d.t_mag[j - 1]), np.abs(d.t_mag[j] - t)) <= 2 * per
+        ok = (np.linalg.norm(sd, axis=1) < tol) & (np.abs(nrm - g) < tol) & near
+        if not ok.any():
+            continue
+        m = mag.apply(d.mag)
+        A.append(a[ok])
+        M.append(np.column_stack([np.interp(t[ok], d.t_mag, m[:, k]) for k in range(3)]))
+    return (np.concatenate(A), np.concatenate(M)) if A else (np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+def mag_to_accel_rotation(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCalibration,
+                          g: float) -> tuple[Array, dict]:
+    """Rotation P (any angle) that carries the magnetometer's frame onto the accelerometer's, from the
+    constant angle between gravity and the field at quasi-static attitudes (:func:`align.align_by_dip`),
+    the samples weighted by attitude coverage. Used where rotation phases could not align the two
+    (eqs. 25–27 need phases about two axes). Returns (P (3, 3), figures: angle °, σ °, dip °, samples).
+    Raises FitError when gravity was not seen tilted about two axes (P is then not determined)."""
+    from .align import align_by_dip
+
+    a, m = quasi_static_pairs(segs, acc, mag, g)
+    w = sphere_bin_weights(a, per_bin=20)
+    k = w > 0
+    n_dir = distinct_directions(a[sphere_bin_weights(a, per_bin=1) > 0]) if a.shape[0] else 0  # one per cell
+    if a.shape[0] < 20 or n_dir < 4:
+        raise FitError(f"mag-to-accel rotation: {n_dir} distinct quasi-static attitudes (need 4, tilted about "
+                       "two axes)")
+    P, c, rms, cov = align_by_dip(a[k], m[k], w[k])
+    sig = float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3))) if np.all(np.isfinite(cov)) else float("inf")
+    ang = float(np.degrees(np.arccos(np.clip((np.trace(P) - 1) / 2, -1, 1))))
+    return P, {"angle_deg": ang, "sigma_deg": sig, "dip_deg": float(np.degrees(np.arcsin(np.clip(c, -1, 1)))),
+               "residual_rms": rms, "samples": int(a.shape[0]), "attitude_cells": int(k.sum())}

@@ -56,7 +56,7 @@ def _warn(msgs: Sequence[str]) -> None:
 
 def cmd_simulate(a: argparse.Namespace) -> int:
     from .io import write_log
-    from .sim import simulate
+    from .sim import ProfileError, simulate
     from .sim.effects import EffectError, check_combination, parse_effect
 
     try:
@@ -65,6 +65,8 @@ def cmd_simulate(a: argparse.Namespace) -> int:
         sim = simulate(a.profile, a.seed, a.duration, a.rate, a.mag_rate, effects=effects)
     except EffectError as e:  # the message names the spec and what is wrong with it
         raise UsageError(f"--effect: {e}") from e
+    except ProfileError as e:
+        raise UsageError(f"--profile: {e}") from e
     out = Path(a.out)
     if out.suffix not in (".tlog", ".csv", ".bin"):
         raise UsageError(f"{out}: extension must be .tlog, .csv or .bin")
@@ -405,7 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="write a simulated session (.tlog/.csv/.bin) and its truth")
     p.add_argument("--out", required=True)
-    p.add_argument("--profile", choices=["paper", "flight"], default="paper")
+    p.add_argument("--profile", default="paper",
+                   help="paper | flight | multirotor | fixedwing, vehicles with options "
+                        "NAME[:vibration=M/S2,mag_interference=F,rest=S]")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=None)
     p.add_argument("--rate", type=float, default=100.0, help="IMU rate, Hz")

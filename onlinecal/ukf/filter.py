@@ -71,6 +71,7 @@ from .layout import (
     rot_log,
 )
 from .propagate import interp_weights, propagate_block
+from .vehicle import MotionCoverage, VehicleDetector, observability_report, vehicle_accel_var
 
 Array = NDArray[np.float64]
 
@@ -127,6 +128,11 @@ class UKFConfig:
     divergence_windows: int = 3  # ... for this many windows in a row → divergence
     mag_fit_min_samples: int = 100
     mag_fit_min_spread: float = 0.1  # smallest eigenvalue of the scatter of unit field directions (1/3: a sphere)
+    # smallest eigenvalue of the *covariance* (centred) of the unit field directions: a flight's yaw turns
+    # and ±25° tilts sweep a band (0.001–0.009 over 10 min, multirotor and fixed-wing profiles) on which the
+    # centre along the band's axis and that axis' scale trade off against the gyro's x/y scale (a cold fit
+    # there ended 30–45σ off); the paper session reaches 0.058 within 60 s, 0.17 by 120 s
+    mag_fit_min_cover: float = 0.03
     mag_fit_max_centre_sigma: float = 0.01  # LS σ of the sphere's centre, relative to its radius
     mag_buffer_max: int = 2000
     max_gap_s: float = 0.5  # IMU gap that restarts the attitude
@@ -165,6 +171,16 @@ class UKFConfig:
     # 12/12 at 4 and at 8, and 12/12 on the 12 further seeds not used to choose it (benchmarks/ukf_stats.py
     # --cold 90 --set update_damping=…)
     update_damping: float = 4.0
+    # a vehicle's own acceleration (onlinecal.ukf.vehicle): "auto" detects it from the data (vibration or a
+    # specific-force norm away from g), "vehicle" assumes it from the start, "platform" never. Once on,
+    # every accelerometer update outside a rest carries an unknown acceleration of σ vehicle_accel_sigma
+    # per axis correlated over vehicle_accel_tau s (a multirotor's ≤ 3 m/s² legs, a fixed-wing's turns,
+    # g·tan(30°) ≈ 5.7 m/s² for up to 30 s), and rests are judged with the spec noise (vibration cannot pass)
+    vehicle: str = "auto"
+    vehicle_accel_sigma: float = 3.0
+    vehicle_accel_tau: float = 30.0
+    vehicle_vibration_sigma: float = 0.3
+    vehicle_dev_min: float = 0.5
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -427,6 +443,10 @@ class OnlineCalibrator:
         self._run: dict[str, list[tuple[float, int]]] = {}
         self._clip_on = {s: False for s in SENSORS}
         self._T0: float | None = None
+        self._vehicle = VehicleDetector(c.vehicle_vibration_sigma, c.vehicle_dev_min)
+        if c.vehicle == "vehicle":
+            self._vehicle.active, self._vehicle.since, self._vehicle.reason = True, 0.0, "configured"
+        self._coverage = MotionCoverage()
         self._reset_calibration()
 
     # ------------------------------------------------------------------------------------------
@@ -1015,12 +1035,32 @@ class OnlineCalibrator:
         """Keep a bounded, time-decimated buffer of raw mag samples for the cold-start sphere fit."""
         if self.mag_enabled:
             return
+        if not self._mag_buf and m.shape[0] and (self.init is None or self.init.mag is None):
+            self._mag_prior_from_raw(m)
         for ti, mi in zip(tm, m, strict=True):
             if ti >= self._mag_buf_next:
                 self._mag_buf.append([float(v) for v in mi])
                 self._mag_buf_next = ti + 0.1
         if len(self._mag_buf) > self.config.mag_buffer_max:
             self._mag_buf = self._mag_buf[::2]
+
+    def _mag_prior_from_raw(self, m: Array) -> None:
+        """Cold mag prior in the raw unit, from the first samples' field magnitude |m|: scale 1/|m| and
+        σ ``cold_sigma`` relative to it (the prior of :meth:`_prior` assumes a unit field). The mag is not
+        used before its fit, so this changes only what a flight that never fits it reports: its prior."""
+        r = float(np.median(np.linalg.norm(m, axis=1)))
+        if not (math.isfinite(r) and r > 0):
+            return
+        sl = SENSOR_SLICE["mag"]
+        cs = self.config.cold_sigma["mag"]
+        x = np.concatenate([np.zeros(3), np.full(3, 1.0 / r), np.zeros(6)])
+        sig = np.concatenate([np.full(3, cs["bias"] * r), np.full(3, cs["scale"] / r),
+                              np.full(3, cs["alpha"]), np.full(3, cs["xi"])])
+        self.x[sl] = x
+        self.P[sl, :] = 0.0
+        self.P[:, sl] = 0.0
+        self.P[sl, sl] = np.diag(sig**2)
+        self.prior_x[sl], self.prior_sigma[sl] = x, sig
 
     def _try_mag_fit(self, t: float) -> None:
         """Sphere fit ‖x − o‖ = r (linear least squares) once the samples span enough directions.
@@ -1055,7 +1095,9 @@ class OnlineCalibrator:
         sig_o = float(np.sqrt(np.max(np.diag(cov)[:3])))
         u = (x - o) / np.linalg.norm(x - o, axis=1)[:, None]
         spread = float(np.linalg.eigvalsh(u.T @ u / u.shape[0])[0])
-        if spread < c.mag_fit_min_spread or not sig_o < c.mag_fit_max_centre_sigma * r:
+        cover = float(np.linalg.eigvalsh(np.cov(u.T))[0])
+        if (spread < c.mag_fit_min_spread or cover < c.mag_fit_min_cover
+                or not sig_o < c.mag_fit_max_centre_sigma * r):
             return
         sl = SENSOR_SLICE["mag"]
         fs = c.mag_fit_sigma
@@ -1236,7 +1278,15 @@ class OnlineCalibrator:
         n = self._noise(spec)
         self._hold_new = False
         held = self._hold_flags(B, b, n)
-        rest = self._rest_detect(B, b, n)
+        if c.vehicle == "auto":
+            why = self._vehicle.update(math.sqrt(float(B.var3["accel"][b])), None, tl)
+            if why:
+                self._event("vehicle", why + ": vehicle acceleration modelled from here on", tl)
+        n_rest = n
+        if self._vehicle.active and self._noise_high["accel"]:
+            # a vibrating vehicle is not at rest: judge stillness against the sensor's own noise
+            n_rest = dict(n, accel=n["accel"] / math.sqrt(self._noise_ratio["accel"]))
+        rest = self._rest_detect(B, b, n_rest)
         zero_rate = rest and self._still
         acc = self._rest_acc
         if acc is not None and (not zero_rate or self._hold_new or held != acc["held"]
@@ -1305,6 +1355,16 @@ class OnlineCalibrator:
         # √(2g·dev), which the norm does not show otherwise
         var_a = (sig_mean**2 + (c.acc_dev_gain * dev) ** 2 + 2.0 * c.gravity * dev
                  + (c.acc_lever_m * rate**2) ** 2)
+        if c.vehicle == "auto":
+            why = self._vehicle.update(math.nan, dev, tl)
+            if why:
+                self._event("vehicle", why + ": vehicle acceleration modelled from here on", tl)
+        if self._vehicle.active:
+            # outside a rest the specific force is gravity plus the vehicle's unknown acceleration
+            var_a += vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt_blk)
+        self._coverage.add_motion(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr), dt_blk, self._vehicle.active)
+        if use_mag:
+            self._coverage.add_field(self._calibrated("mag", B.m_mean[b]))
         if not clip["accel"]:
             Za = np.einsum("sij,sj->si", Minv_a, c.gravity * pred.f_body) + o_a  # eq. 1 inverted
             if held["accel"]:
@@ -1405,6 +1465,7 @@ class OnlineCalibrator:
             a_mean = acc["sa"] / acc["na"]
             f_all = np.einsum("sij,sj->si", M_all[:S], a_mean - o_all[:S])
             f_cal = f_all[0]
+            self._coverage.add_rest(f_cal, float(t[-1] - self._t_last))
             nf = np.sqrt(np.einsum("si,si->s", f_all, f_all))
             nf_mean = float(Wm @ nf)
             var_cal = max(0.0, float(Wc @ (nf - nf_mean) ** 2))
@@ -1655,6 +1716,7 @@ class OnlineCalibrator:
             "extensions_sigma": self.extensions_sigma(),
             "extensions_unit": {e: EXTENSIONS[e][2] for e in self._ext_slice},
             "events": list(self.events), "nis": self.nis_summary(),
+            "observability": self.observability_report(),
         }}
         return Calibration(gyro=sens["gyro"], accel=sens["accel"], mag=sens["mag"], source="online",
                            meta=meta, extensions=self.extensions())
@@ -1694,6 +1756,19 @@ class OnlineCalibrator:
             ratio = float(sig[i] / self.prior_sigma[i]) if self.prior_sigma[i] > 0 else float("nan")
             out[nm] = {"ratio": ratio, "excited": bool(ratio < self.config.excited_ratio)}
         return out
+
+    def observability_report(self) -> dict[str, Any]:
+        """Determined and undetermined terms, why, and the motion that would determine them
+        (:func:`onlinecal.ukf.vehicle.observability_report`)."""
+        held = set()
+        if self.gauge:
+            held = {f"{self.gauge}.{p}.{a}" for p in self._gauge_terms() for a in AXES}
+        names = [nm for _, nm in self._public_names()]
+        idx = [i for i, _ in self._public_names()]
+        return observability_report(["att.x", "att.y", "att.z"] + names,
+                                    np.concatenate([np.zeros(3), self.sigma()[idx]]),
+                                    np.concatenate([np.ones(3), self.prior_sigma[idx]]),
+                                    self._coverage, self._vehicle, held, self.gauge, self.config.excited_ratio)
 
     def missing_motion(self) -> list[str]:
         """What motion is still needed to excite the parameters that are not yet excited."""
@@ -1793,6 +1868,7 @@ class OnlineCalibrator:
             "noise_ratio": self._noise_ratio, "noise_high": self._noise_high,
             "rail": self._rail, "run": {k: [list(r) for r in v] for k, v in self._run.items()},
             "clip_on": self._clip_on, "T0": self._T0,
+            "vehicle": self._vehicle.to_dict(), "coverage": self._coverage.get_state(),
             "rest_acc": None if self._rest_acc is None else {
                 **{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self._rest_acc.items()
                    if k != "post"},
@@ -1853,6 +1929,10 @@ class OnlineCalibrator:
         self._clip_on = {k: bool(v) for k, v in d["clip_on"].items()}
         self._T0 = d["T0"]
         self._T_last = math.nan
+        self._vehicle = VehicleDetector(c.vehicle_vibration_sigma, c.vehicle_dev_min)
+        self._vehicle.set_state(d.get("vehicle", {}))
+        self._coverage = MotionCoverage()
+        self._coverage.set_state(d.get("coverage", {}))
         ra = d.get("rest_acc")
         self._rest_acc = None if ra is None else {
             k: (np.asarray(v, float) if k in ("x", "P", "R_nom", "q", "sa", "sm", "sw") else v) for k, v in ra.items()}

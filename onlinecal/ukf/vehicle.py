@@ -195,7 +195,8 @@ def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str |
         j, k = AXES.index(turns[0]), AXES.index(turns[1])
         return (f"turns about {turns[0]} and {turns[1]} reached {mr[j]:.0f} and {mr[k]:.0f}°/s "
                 f"({ang[j]:.0f}° and {ang[k]:.0f}°)",
-                f"full turns about {turns[0]} and about {turns[1]} (gyro axis {'alignment' if p == 'alpha' else 'non-orthogonality'})")
+                f"full turns about {turns[0]} and about {turns[1]} (gyro axis "
+                f"{'alignment' if p == 'alpha' else 'non-orthogonality'})")
     if s == "accel":
         axes = cov.gravity_axes()
         extra = (" (in flight the accelerometer measures thrust, not gravity: only rests count)" if vehicle else "")

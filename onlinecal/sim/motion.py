@@ -20,8 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from ..specs import G0 as G0  # the constant is production data (onlinecal.specs); re-exported here
+
 Array = NDArray[np.float64]
-G0 = 9.80665
 
 
 def smoothstep(u: Array) -> tuple[Array, Array, Array]:

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
+from ..specs import ACCEL_SPEC, FIELD_DIP_DEG, FIELD_GAUSS, GYRO_SPEC, MAG_SPEC, SensorSpec  # noqa: F401 (re-export)
 from .effects import order_effects
 from .flight import (
     VIBE_HEALTHY,
@@ -38,30 +39,6 @@ TRUTH_SCHEMA = "onlinecal.truth/1"
 # The paper's gyroscope figures (Table II): bias rad/s and scale (calibrated = S · raw).
 PAPER_GYRO_BIAS = (0.0027, 0.1605, 0.0660)
 PAPER_GYRO_SCALE = (1.1526, 1.1327, 1.1425)
-
-
-@dataclass(frozen=True)
-class SensorSpec:
-    """Noise and ADC of one sensor. ``density`` white-noise density (unit/√Hz); ``lsb`` quantum;
-    ``full_scale`` clipping limit (unit); ``floor`` per-sample noise independent of rate."""
-
-    density: float
-    lsb: float
-    full_scale: float
-    floor: float = 0.0
-
-    def sigma(self, rate: float) -> float:
-        """Per-sample white-noise σ at ``rate`` Hz (Nyquist bandwidth rate/2)."""
-        return float(np.hypot(self.density * np.sqrt(rate / 2.0), self.floor))
-
-
-# ICM-20602-class: gyro 4 mdps/√Hz at ±1000 dps (16 bit), accel 100 µg/√Hz at ±8 g; mag IST8310-class.
-GYRO_SPEC = SensorSpec(density=np.radians(0.004), lsb=np.radians(2000 / 65536), full_scale=np.radians(1000))
-ACCEL_SPEC = SensorSpec(density=100e-6 * G0, lsb=16 * G0 / 65536, full_scale=8 * G0)
-MAG_SPEC = SensorSpec(density=0.0, lsb=0.0003, full_scale=4.0, floor=0.0006)
-
-FIELD_GAUSS = 0.48  # local field strength (central Europe)
-FIELD_DIP_DEG = 64.0
 
 
 def field_world(dip_deg: float = FIELD_DIP_DEG) -> Array:

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from ..model import PARAMS, SENSORS
 from ..sim.motion import euler_to_R
+from .geometry import prefix_products, prefix_products_cm, rodrigues, rodrigues_cm, rot_log, skew
 
 Array = NDArray[np.float64]
 
@@ -118,89 +119,7 @@ def field_world(dip: Array) -> Array:
     return np.stack([np.zeros_like(dip), np.cos(dip), -np.sin(dip)], axis=-1)
 
 
-def skew(v: Array) -> Array:
-    """[v]_x for v (S, 3) → (S, 3, 3)."""
-    K = np.zeros(v.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
-    return K
-
-
-def rodrigues(theta: Array) -> Array:
-    """exp([θ]_x) for θ (..., 3) → (..., 3, 3), exact for any angle (sinc forms, no branch at 0)."""
-    a = np.sqrt(np.einsum("...i,...i->...", theta, theta))
-    s = np.sinc(a / np.pi)[..., None, None]  # sin(a)/a
-    c = (0.5 * np.sinc(a / (2 * np.pi)) ** 2)[..., None, None]  # (1 − cos a)/a²
-    K = skew(theta)
-    return np.eye(3) + s * K + c * (K @ K)
-
-
-def rot_log(R: Array) -> Array:
-    """Rotation vector of R (..., 3, 3) → (..., 3), for angles below π (the inverse of rodrigues)."""
-    v = 0.5 * np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                        R[..., 1, 0] - R[..., 0, 1]], axis=-1)
-    s = np.sqrt(np.einsum("...i,...i->...", v, v))
-    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
-    a = np.arctan2(s, c)
-    # a / sin(a), with its series near 0 so that tiny rotations are exact as well
-    k = np.where(s > 1e-8, a / np.where(s > 1e-8, s, 1.0), 1.0 + a * a / 6.0)
-    return v * k[..., None]
-
-
-def rodrigues_cm(th: Array) -> Array:
-    """exp([θ]_x) in component-major layout: θ (3, ...) → R (3, 3, ...).
-
-    R = (1 − c a²) I + s [θ]_x + c θθᵀ with a = |θ|, s = sin a / a, c = (1 − cos a)/a². Component-major
-    arrays keep every operation elementwise over all sigma points and samples at once (fast for stacks of
-    3×3 matrices, where numpy's batched matmul is slow). Series for s and c when every angle is small.
-    """
-    a2 = th[0] * th[0] + th[1] * th[1] + th[2] * th[2]
-    if float(a2.max(initial=0.0)) < 0.05**2:
-        s = 1.0 - a2 / 6.0 + a2 * a2 / 120.0
-        c = 0.5 - a2 / 24.0 + a2 * a2 / 720.0
-    else:
-        a = np.sqrt(a2)
-        s = np.sinc(a / np.pi)
-        c = 0.5 * np.sinc(a / (2 * np.pi)) ** 2
-    d = 1.0 - c * a2
-    x, y, z = th[0] * s, th[1] * s, th[2] * s
-    cx, cy = c * th[0], c * th[1]
-    cxy, cxz, cyz = cx * th[1], cx * th[2], cy * th[2]
-    R = np.empty((3, 3) + th.shape[1:])
-    R[0, 0], R[1, 1], R[2, 2] = d + cx * th[0], d + cy * th[1], d + c * th[2] * th[2]
-    R[0, 1], R[1, 0] = cxy - z, cxy + z
-    R[0, 2], R[2, 0] = cxz + y, cxz - y
-    R[1, 2], R[2, 1] = cyz - x, cyz + x
-    return R
-
-
-def prefix_products_cm(dR: Array) -> Array:
-    """Running products P_k = dR_1 · dR_2 ⋯ dR_k along the last axis, component-major: (3, 3, S, L).
-
-    Hillis–Steele scan: ⌈log₂ L⌉ vectorised levels (each one einsum over all sigma points and samples),
-    so the attitude of every sigma point at every IMU sample of a block comes without a loop over either.
-    """
-    P = dR.copy()
-    L = P.shape[-1]
-    shift = 1
-    while shift < L:
-        # earlier factors on the left; the right-hand side is evaluated before the assignment
-        P[..., shift:] = np.einsum("iksl,kjsl->ijsl", P[..., : L - shift], P[..., shift:])
-        shift *= 2
-    return P
-
-
-def prefix_products(dR: Array) -> Array:
-    """Running products P_k = dR_1 · dR_2 ⋯ dR_k along axis 1 of dR (S, L, 3, 3) → (S, L, 3, 3).
-
-    Hillis–Steele scan: ⌈log₂ L⌉ batched matmuls instead of L sequential ones, so the attitude of
-    every sigma point at every IMU sample of a block comes out of a few vectorised operations.
-    """
-    P = dR.copy()
-    L = P.shape[1]
-    shift = 1
-    while shift < L:
-        P[:, shift:] = P[:, : L - shift] @ P[:, shift:]  # earlier factors on the left
-        shift *= 2
-    return P
+# the hot-path geometry lives in .geometry; re-exported for propagate.py and older imports
+__all__ = ["ATT", "AXES", "DIP", "N_STATE", "NAMES", "PARAM_OFFSET", "SENSOR_SLICE", "correction", "field_world",
+           "index", "model_pair", "prefix_products", "prefix_products_cm", "rodrigues", "rodrigues_cm",
+           "rot_log", "sensor_model", "skew", "state_names"]

@@ -1,0 +1,247 @@
+"""Starting the attitude and the magnetometer: what the filter does before (or instead of) a UKF step.
+
+* :func:`initial_attitude` — roll and pitch from the block's mean accel, yaw from its field (TRIAD), and
+  the σ of that start in the body-frame error;
+* :func:`set_yaw_variance` — forget the heading (nothing sees it without a mag) and give it a σ;
+* :func:`yaw_to_north` — once the mag is calibrated, turn the world so that the field points north;
+* :class:`MagCollector`, :func:`fit_mag_cold` — the magnetometer's cold start: a sphere fit on buffered
+  raw samples, refined to the full ellipsoid (eq. 17) where the samples carry it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..model import decompose
+from .config import UKFConfig
+from .geometry import triad, yaw_rotation
+
+Array = NDArray[np.float64]
+E_Z = np.array([0.0, 0.0, 1.0])
+
+
+def initial_attitude(f: Array, h: Array | None, h_world: Array, s_rp: float, s_y: float) -> tuple[Array, Array]:
+    """Attitude R (world ← body) (3, 3) from the unit specific force f (3,) and the unit field h (3,) in
+    the body frame (TRIAD against e_z and ``h_world``), and the covariance (3, 3) of the body-frame
+    attitude error for σ ``s_rp`` (roll, pitch) and ``s_y`` (heading) about the world axes.
+
+    ``h`` None (no calibrated mag): the yaw is arbitrary (the body x axis is put east) and ``s_y`` should
+    be diffuse.
+    """
+    if h is None:
+        h = np.array([1.0, 0.0, 0.0]) if abs(f[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        h_world = np.array([1.0, 0.0, 0.0])
+    R = triad(f, h, E_Z, h_world)
+    # σ given about the world axes (tilt, heading), turned into the body-frame error
+    P_att: Array = R.T @ np.diag([s_rp, s_rp, s_y]) ** 2 @ R
+    return R, P_att
+
+
+def dip_of(f: Array, h: Array) -> float:
+    """Dip δ (rad) of the field from the unit specific force f and unit field h (body frame): sin δ = −f·h."""
+    return math.asin(float(np.clip(-f @ h, -1, 1)))
+
+
+def set_yaw_variance(P: Array, R_nom: Array, var: float, att: slice) -> Array:
+    """P (n, n) with everything it knows about the heading (rotation about world z) removed and ``var``
+    given to it instead.
+
+    The error is in the body frame, so the heading is the direction u = R_nomᵀ e_z of the attitude error
+    (``att`` its slice): P ← J P Jᵀ with J = I − u uᵀ on the attitude block, then var · u uᵀ added. J differs
+    from the identity only in the attitude block, so only the attitude rows and columns change.
+    """
+    u = R_nom[2, :]  # R_nomᵀ e_z
+    J = np.eye(3) - np.outer(u, u)
+    P = P.copy()
+    P[att, :] = J @ P[att, :]
+    P[:, att] = P[:, att] @ J.T
+    P[att, att] += var * np.outer(u, u)
+    return P
+
+
+def yaw_to_north(R_nom: Array, h_cal: Array) -> tuple[float, Array]:
+    """First calibrated mag block: the field h_cal (3,) (body frame) gives the dip (rad) and the turn of
+    the world about z that puts its horizontal part on north (+y). Returns (dip, R_nom turned)."""
+    hw = R_nom @ (h_cal / np.linalg.norm(h_cal))
+    dip = math.asin(float(np.clip(-hw[2], -1, 1)))
+    psi = math.atan2(hw[0], hw[1])  # turning the world by +psi about z moves hw onto +y
+    return dip, yaw_rotation(psi) @ R_nom
+
+
+@dataclass
+class MagCollector:
+    """A bounded, time-decimated (one per 0.1 s) buffer of raw mag samples for the cold-start fit."""
+
+    buf: list[list[float]] = field(default_factory=list)
+    next_t: float = -math.inf
+
+    def add(self, tm: Array, m: Array, max_len: int) -> None:
+        for ti, mi in zip(tm, m, strict=True):
+            if ti >= self.next_t:
+                self.buf.append([float(v) for v in mi])
+                self.next_t = ti + 0.1
+        if len(self.buf) > max_len:
+            self.buf = self.buf[::2]
+
+
+@dataclass
+class MagFit:
+    """A usable cold-start fit: the 12 mag terms x (bias, scale, alpha, xi), their σ, the cold prior σ in
+    the fit's raw unit (for the observability ratios) and what to say about it."""
+
+    x: Array
+    sigma: Array
+    prior_sigma: Array
+    detail: str
+
+
+def fit_mag_cold(x: Array, c: UKFConfig) -> MagFit | None:
+    """Sphere fit ‖x − o‖ = r (linear least squares) of raw samples x (N, 3), refined to the ellipsoid
+    (eq. 17) where the samples carry it; None unless they span enough directions and pin the centre.
+
+    Sphere: o_mag = centre, s_mag = 1/r (all axes), angles 0, σ ``c.mag_fit_sigma``. Ellipsoid (geometric
+    fit, :func:`ellipsoid_gn`): the soft iron starts near its value, σ ``c.mag_ellipsoid_sigma``, so the
+    first mag updates stay in the UKF's near-linear range.
+    """
+    m0 = x.mean(axis=0)
+    xc = x - m0  # centred for conditioning
+    A = np.column_stack([2 * xc, np.ones(x.shape[0])])
+    b = (xc**2).sum(axis=1)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    oc = sol[:3]
+    r2 = sol[3] + oc @ oc
+    if r2 <= 0:
+        return None
+    r = math.sqrt(r2)
+    o = m0 + oc
+    # usable only when the samples pin the centre down: LS covariance of the centre (the residual
+    # includes the soft iron the sphere lacks, so this also rejects a cloud of noise or a flat circle)
+    e = b - A @ sol
+    s2 = float(e @ e) / max(1, x.shape[0] - 4)
+    try:
+        cov = s2 * np.linalg.inv(A.T @ A)
+    except np.linalg.LinAlgError:
+        return None
+    sig_o = float(np.sqrt(np.max(np.diag(cov)[:3])))
+    u = (x - o) / np.linalg.norm(x - o, axis=1)[:, None]
+    spread = float(np.linalg.eigvalsh(u.T @ u / u.shape[0])[0])
+    cover = float(np.linalg.eigvalsh(np.cov(u.T))[0])  # a band of directions (a flight) is not enough
+    if (spread < c.mag_fit_min_spread or cover < c.mag_fit_min_cover
+            or not sig_o < c.mag_fit_max_centre_sigma * r):
+        return None
+    fs = c.mag_fit_sigma
+    x_m = np.concatenate([o, np.full(3, 1.0 / r), np.zeros(6)])
+    sig = np.concatenate([np.full(3, fs["bias"] * r), np.full(3, fs["scale"] / r),
+                          np.full(3, fs["alpha"]), np.full(3, fs["xi"])])
+    kind = "sphere"
+    ell = _ellipsoid_refine(x, o, r, c)
+    if ell is not None:
+        x_m, sig = ell
+        kind = "ellipsoid"
+    cs = c.cold_sigma["mag"]
+    prior_sig = np.concatenate([np.full(3, cs["bias"] * r), np.full(3, cs["scale"] / r),
+                                np.full(3, cs["alpha"]), np.full(3, cs["xi"])])
+    detail = (f"{kind} fit on {x.shape[0]} samples: |field| {r:.4g} raw, "
+              f"hard iron {np.round(o, 4).tolist()} ± {sig_o:.2g}, direction spread {spread:.3f}")
+    return MagFit(x_m, sig, prior_sig, detail)
+
+
+def _ellipsoid_refine(x: Array, o: Array, r: float, c: UKFConfig) -> tuple[Array, Array] | None:
+    """The 12 mag terms and σ from the geometric ellipsoid fit started at the sphere (o, r), or None when
+    its covariance says the samples do not carry an ellipsoid."""
+    try:
+        o_e, M_e, cov_e, _ = ellipsoid_gn(x, o, np.eye(3) / r)
+        sd = np.sqrt(np.clip(np.diag(cov_e), 0, None))
+        if (np.all(np.isfinite(sd)) and sd[:3].max() < c.mag_fit_max_centre_sigma * r
+                and sd[3:].max() < 0.01 / r and np.linalg.det(M_e) > 0):
+            s_e, a_e, xi_e = decompose(M_e)
+            fe = c.mag_ellipsoid_sigma
+            return (np.concatenate([o_e, s_e, a_e, xi_e]),
+                    np.concatenate([np.maximum(3 * sd[:3], fe["bias"] * r), np.full(3, fe["scale"] / r),
+                                    np.full(3, fe["alpha"]), np.full(3, fe["xi"])]))
+    except (ValueError, np.linalg.LinAlgError):
+        pass
+    return None
+
+
+_IU = np.triu_indices(3)
+
+
+def ellipsoid_gn(x: Array, o0: Array, M0: Array, max_iter: int = 40,
+                 reject_sigma: float = 5.0) -> tuple[Array, Array, Array, float]:
+    """Geometric ellipsoid fit ‖M (x − o)‖ = 1 (Zhang et al. eq. 17) by Levenberg–Marquardt with the
+    analytic Jacobian; o (3,) and a symmetric M (its 6 upper-triangle entries) as the batch fit has them.
+
+    r_i = ‖y_i‖ − 1 with y_i = M d_i, d_i = x_i − o, n_i = y_i/‖y_i‖: ∂r_i/∂o = −M n_i and
+    ∂r_i/∂M_jk = n_j d_k + n_k d_j (j < k), n_j d_j (j = k). x (N, 3) raw samples; o0, M0 the start (a
+    sphere fit). One outlier rejection at ``reject_sigma`` × MAD, then a refit. Returns (o, M, cov (9, 9)
+    of (o, upper triangle of M) from the Gauss–Newton normal matrix and the residual variance, residual
+    rms). A fixed iteration budget keeps the cost bounded (a few ms) where the data do not carry an
+    ellipsoid; the caller rejects such fits by their covariance.
+    """
+    jj, kk = _IU
+    off = (jj != kk).astype(float)
+
+    def resid_jac(p: Array, pts: Array) -> tuple[Array, Array]:
+        o = p[:3]
+        M = np.zeros((3, 3))
+        M[_IU] = p[3:]
+        M = M + np.triu(M, 1).T
+        d = pts - o
+        y = d @ M
+        ny = np.sqrt(np.einsum("ij,ij->i", y, y))
+        nv = y / ny[:, None]
+        J = np.empty((pts.shape[0], 9))
+        J[:, :3] = -(nv @ M)
+        J[:, 3:] = nv[:, jj] * d[:, kk] + off * nv[:, kk] * d[:, jj]
+        return ny - 1.0, J
+
+    def solve(p: Array, pts: Array) -> Array:
+        lam = 1e-3
+        r, J = resid_jac(p, pts)
+        cost = float(r @ r)
+        for _ in range(max_iter):
+            A = J.T @ J
+            g = J.T @ r
+            try:
+                step = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
+            except np.linalg.LinAlgError:
+                break
+            p_new = p + step
+            r_new, J_new = resid_jac(p_new, pts)
+            c_new = float(r_new @ r_new)
+            if np.isfinite(c_new) and c_new < cost:
+                done = cost - c_new < 1e-12 * cost
+                p, r, J, cost = p_new, r_new, J_new, c_new
+                lam = max(lam / 10.0, 1e-12)
+                if done:
+                    break
+            else:
+                lam *= 10.0
+                if lam > 1e8:
+                    break
+        return p
+
+    p = solve(np.concatenate([o0, M0[_IU]]), x)
+    keep = np.ones(x.shape[0], bool)
+    if x.shape[0] >= 36:
+        r, _ = resid_jac(p, x)
+        mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+        keep = np.abs(r) <= max(reject_sigma * mad, 1e-12)
+        if keep.sum() >= 9 and not keep.all():
+            p = solve(p, x[keep])
+    r, J = resid_jac(p, x[keep])
+    s2 = float(r @ r) / max(1, int(keep.sum()) - 9)
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        cov = np.full((9, 9), np.inf)
+    M = np.zeros((3, 3))
+    M[_IU] = p[3:]
+    return p[:3], M + np.triu(M, 1).T, cov, math.sqrt(float(np.mean(r * r)))
+
+

@@ -1,0 +1,319 @@
+"""Raw-data statistics of the filter blocks and the detectors that run on raw data alone.
+
+Everything here looks at the samples, never at the filter state: the cut into filter blocks
+(:func:`cut_blocks`), the per-block means, spreads and third-difference noise (:func:`block_stats`, one
+vectorised pass over all blocks of a ``feed``), the value lattice of a log (:func:`value_lattice`), and the
+detectors for the ADC rail (:class:`RailDetector`), rests (:class:`RestDetector`) and held readings
+(:class:`HoldTracker`). Detectors keep their own small state and return flags and events; the filter
+decides what to do with them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+def value_lattice(v: Array) -> float:
+    """The quantum q of a sensor's values when every value is an integer multiple of it, else 0.
+
+    v (N, 3) raw readings. q is the smallest step between distinct values on any axis; it counts only
+    if all values are multiples of it to 1e-6 (floats from integer counts times a unit factor are).
+    """
+    v = v[np.all(np.isfinite(v), axis=1)]
+    if v.shape[0] < 8:
+        return 0.0
+    steps = np.concatenate([np.diff(np.unique(v[:, k])) for k in range(3)])
+    steps = steps[steps > 0]
+    if not steps.size:
+        return 0.0
+    q = float(steps.min())
+    if q <= 1e-9 * max(float(np.abs(v).max()), 1e-300):
+        return 0.0
+    k = v / q
+    return q if float(np.max(np.abs(k - np.round(k)))) < 1e-6 else 0.0
+
+
+def third_diff_var(v: Array, t: Array, seg: Array, n_seg: int, min_windows: int = 3) -> Array:
+    """Per-segment white-noise variance from third differences: median |Δ³v|² / (3·20·0.789), (n_seg,).
+
+    v (N, 3) samples at times t (N,) s, seg (N,) the segment (filter block) of each sample, ascending.
+    Δ³ of white noise on a regular grid has variance 20σ² per axis; a smooth motion's own third
+    difference (rate‴·Δt³) is far below it at IMU rates. The median makes it robust to a jerk;
+    0.789 = median of χ²(3) / 3. Only windows of 4 samples inside one segment whose 3 intervals agree
+    within 1.5× count: across a dropped sample the difference is not the white-noise Δ³ (the motion
+    over the missing interval enters it), so a log with gaps would read as noisy. NaN where a segment
+    has fewer than ``min_windows`` such windows.
+    """
+    out = np.full(n_seg, math.nan)
+    if v.shape[0] < 4:
+        return out
+    d3 = (v[3:] - v[:-3]) - 3 * (v[2:-1] - v[1:-2])
+    s = np.einsum("ij,ij->i", d3, d3)
+    h = np.diff(t)
+    h3 = np.stack([h[:-2], h[1:-1], h[2:]])
+    ok = (seg[3:] == seg[:-3]) & (h3.max(axis=0) <= 1.5 * h3.min(axis=0))
+    sv, sg = s[ok], seg[3:][ok]
+    cnt = np.bincount(sg, minlength=n_seg)
+    good = cnt >= min_windows
+    if not good.any():
+        return out
+    vals = sv[np.lexsort((sv, sg))]  # grouped by segment (ascending), sorted within
+    off = np.concatenate([[0], np.cumsum(cnt)[:-1]])[good]
+    c = cnt[good]
+    out[good] = 0.5 * (vals[off + (c - 1) // 2] + vals[off + c // 2]) / (3 * 20.0 * 0.7888)
+    return out
+
+
+def _seg_mean_std(v: Array, lo: Array, cnt: Array) -> tuple[Array, Array]:
+    """Mean and standard deviation (ddof 0) per axis of the segments [lo, lo + cnt) of v (N, 3), which
+    follow each other without holes; (n_seg, 3) each, NaN for empty segments. Sums per segment
+    (np.add.reduceat), so a segment's figures do not depend on where the buffer it sits in starts."""
+    ns = lo.shape[0]
+    mean = np.full((ns, 3), math.nan)
+    std = np.full((ns, 3), math.nan)
+    ne = cnt > 0
+    if not ne.any():
+        return mean, std
+    c_n = cnt[ne]
+    s0 = int(lo[ne][0])
+    vv = v[s0 : s0 + int(c_n.sum())]
+    starts = np.concatenate([[0], np.cumsum(c_n)[:-1]])
+    m = np.add.reduceat(vv, starts, axis=0) / c_n[:, None]
+    dv = vv - np.repeat(m, c_n, axis=0)
+    mean[ne] = m
+    std[ne] = np.sqrt(np.add.reduceat(dv * dv, starts, axis=0) / c_n[:, None])
+    return mean, std
+
+
+@dataclass
+class Blocks:
+    """Raw-data figures of a run of consecutive filter blocks, computed for all of them at once (so the
+    per-block work of the filter is only the filter): block b holds IMU samples [lo[b], hi[b]) and mag
+    samples [mlo[b], mhi[b]) of the buffers; w_ext (N + 1, 3) the raw rates with the last one filtered
+    before them, dt (N,) the length of the interval ending at each IMU sample; per block the means and
+    spreads (n_b, 3), the third-difference noise variances (n_b,), the jerk term Σ|Δ²ω·Δt/4|² and its count, the largest
+    |reading| per axis; per mag sample its interpolation index into [t_prev, t] and fraction."""
+
+    lo: Array
+    hi: Array
+    mlo: Array
+    mhi: Array
+    w_ext: Array
+    dt: Array
+    w_mean: Array
+    w_std: Array
+    a_mean: Array
+    a_std: Array
+    m_mean: Array
+    m_std: Array
+    var3: dict[str, Array]
+    jerk: Array
+    jerk_n: Array
+    w_absmax: Array
+    a_absmax: Array
+    m_j: Array
+    m_frac: Array
+
+
+
+def cut_blocks(t: Array, L: int, max_gap: float, final: bool) -> list[tuple[int, int]]:
+    """Filter blocks [i, j) of the buffered times t (N,) s: L samples each, cut at a gap longer than
+    ``max_gap`` s (the block ends before it); ``final``: the remainder is a (short) block too."""
+    n = t.size
+    cut = np.flatnonzero(np.diff(t) > max_gap)
+    bounds: list[tuple[int, int]] = []
+    i = g = 0
+    while n - i >= L or (final and n - i > 0):
+        j = min(i + L, n)
+        while g < cut.size and cut[g] < i:
+            g += 1
+        if g < cut.size and cut[g] < j - 1:
+            j = int(cut[g]) + 1
+        bounds.append((i, j))
+        i = j
+    return bounds
+
+
+def block_stats(t: Array, w: Array, a: Array, tm: Array, m: Array, bounds: list[tuple[int, int]],
+                t_last: float | None, w_last: Array, continues: bool) -> Blocks:
+    """Everything the blocks ``bounds`` need from the raw data alone, for all of them at once.
+
+    t (N,) s, w (N, 3) rad/s, a (N, 3) m/s², tm (M,) s, m (M, 3) raw mag: the buffers. ``t_last``,
+    ``w_last``: time and raw rate of the last sample already filtered (None: none yet); ``continues``:
+    the attitude runs on from it (no gap, attitude initialised), so its mag samples after ``t_last`` belong
+    to the first block.
+    """
+    lo = np.array([b[0] for b in bounds], dtype=np.intp)
+    hi = np.array([b[1] for b in bounds], dtype=np.intp)
+    nb, end = lo.size, int(hi[-1])
+    cnt = hi - lo
+    tt, ww, aa = t[:end], w[:end], a[:end]
+    seg = np.repeat(np.arange(nb), cnt)
+    # mag samples of each block: after the previous block's last sample (for the first block, after
+    # the last sample already filtered when the attitude runs on), up to the block's last sample
+    mhi = np.searchsorted(tm, tt[hi - 1], side="right")
+    m0 = 0
+    if continues and t_last is not None:
+        m0 = min(int(np.searchsorted(tm, t_last, side="right")), int(mhi[0]))
+    mlo = np.concatenate([[m0], mhi[:-1]])
+    mcnt = mhi - mlo
+    # trapezoid rate and interval ending at each sample (sample 0: from the last one filtered)
+    t_prev = t_last if t_last is not None else float(tt[0])
+    w_prev = w_last if t_last is not None else ww[0]
+    w_ext = np.vstack([w_prev[None], ww])
+    t_ext = np.concatenate([[t_prev], tt])
+    dt = np.diff(t_ext)
+    # jerk term of the trapezoid: Δt·|Δ²ω|/4 at every sample but the block's last
+    d2 = (w_ext[2:] - 2 * w_ext[1:-1] + w_ext[:-2]) * (dt[1:, None] / 4)
+    e2 = np.concatenate([np.einsum("ij,ij->i", d2, d2), [0.0]])
+    e2[hi - 1] = 0.0
+    jerk = np.add.reduceat(e2, lo)
+    w_mean, w_std = _seg_mean_std(ww, lo, cnt)
+    a_mean, a_std = _seg_mean_std(aa, lo, cnt)
+    m_mean, m_std = _seg_mean_std(m, mlo, mcnt)
+    var3 = {"gyro": third_diff_var(ww, tt, seg, nb), "accel": third_diff_var(aa, tt, seg, nb)}
+    mt = tm[m0 : int(mhi[-1])]
+    mseg = np.repeat(np.arange(nb), mcnt)
+    var3["mag"] = third_diff_var(m[m0 : int(mhi[-1])], mt, mseg, nb)
+    # interpolation of each mag sample between the IMU ticks around it (index into t_ext)
+    jm = np.clip(np.searchsorted(t_ext, mt, side="left"), lo[mseg] + 1, hi[mseg])
+    frac = np.clip((mt - t_ext[jm - 1]) / (t_ext[jm] - t_ext[jm - 1]), 0.0, 1.0)
+    return Blocks(lo, hi, mlo, mhi, w_ext, dt, w_mean, w_std, a_mean, a_std, m_mean, m_std, var3,
+                  jerk, 3 * np.maximum(cnt - 1, 0), np.maximum.reduceat(np.abs(ww), lo, axis=0),
+                  np.maximum.reduceat(np.abs(aa), lo, axis=0), jm - lo[mseg], frac)
+
+
+def _runs(col: Array, carry: tuple[float, int] | None) -> tuple[Array, Array]:
+    """Starts and lengths of the runs of identical values in col (N,); the first run continues ``carry``
+    (value, length) from the previous block when the value is the same."""
+    starts = np.concatenate([[0], np.flatnonzero(col[1:] != col[:-1]) + 1])
+    lens = np.diff(np.concatenate([starts, [col.size]]))
+    if carry is not None and col[0] == carry[0]:
+        lens[0] += carry[1]
+    return starts, lens
+
+
+@dataclass
+class RailDetector:
+    """The ADC rail of gyro and accel, learnt from the data. A rail is ``rail_run`` identical readings in a
+    row (runs carry over block boundaries) at a magnitude of at least ``rail_min``: noise makes a reading
+    that is not clipped change within a few samples. Once learnt, any reading at the rail counts as
+    clipped. State: the learnt rail per sensor and axis, the open runs, whether a clipped stretch is on."""
+
+    rail: dict[str, list[float]] = field(default_factory=dict)
+    run: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
+    clip_on: dict[str, bool] = field(default_factory=lambda: {"gyro": False, "accel": False, "mag": False})
+
+    def check(self, w: Array, a: Array, w_absmax: Array, a_absmax: Array, rail_min: dict[str, float],
+              rail_run: int) -> tuple[dict[str, bool], list[tuple[str, str]]]:
+        """Which sensors read at their rail in this block (w, a (L, 3) raw; ``*_absmax`` (3,) the block's
+        largest |reading| per axis), and the events (kind, detail) at the start of a clipped stretch."""
+        out = {"mag": False}
+        events: list[tuple[str, str]] = []
+        for s, v, amax in (("gyro", w, w_absmax), ("accel", a, a_absmax)):
+            rail = self.rail.get(s)
+            hit = rail is not None and bool(np.any(amax >= np.asarray(rail) * (1 - 1e-9)))
+            if float(amax.max()) < rail_min[s]:
+                self.run.pop(s, None)
+            else:
+                carry = self.run.get(s)
+                new_carry = []
+                for k in range(3):
+                    col = v[:, k]
+                    starts, lens = _runs(col, None if carry is None else carry[k])
+                    new_carry.append((float(col[-1]), int(lens[-1])))
+                    i = int(np.argmax(lens))
+                    val = abs(float(col[starts[i]]))
+                    if lens[i] >= rail_run and val >= rail_min[s]:
+                        r = self.rail.setdefault(s, [math.inf] * 3)
+                        r[k] = min(r[k], val)
+                        hit = True
+                self.run[s] = new_carry
+            if hit and not self.clip_on[s]:
+                what = ("attitude restarted, the block's updates skipped" if s == "gyro"
+                        else "its update skipped while clipped")
+                events.append(("saturation", f"{s} at its rail ±{np.round(self.rail[s], 4).tolist()}: {what}"))
+            self.clip_on[s] = hit
+            out[s] = hit
+        return out, events
+
+
+@dataclass
+class RestDetector:
+    """Rest from raw data: gyro, accel and mag still (within their noise) for ``rest_blocks`` blocks.
+
+    Still: per-axis spread inside the block below k σ and the change of the block mean against the
+    previous block below 2k σ √(2/L). Needs no calibration; a constant-rate turn about the vertical without
+    a magnetometer cannot be told from rest (nothing measures it). State: the previous block's means, the
+    count of still blocks in a row, whether the last block was still."""
+
+    prev_means: tuple[Any, Any, Any] | None = None
+    count: int = 0
+    still: bool = False
+
+    def reset(self) -> None:
+        """A new log, a gap: the previous means no longer compare."""
+        self.prev_means = None
+        self.count = 0
+
+    def update(self, B: Blocks, b: int, n: dict[str, float], k: float, rest_blocks: int) -> bool:
+        """Judge block ``b`` of ``B`` with the per-sample noise σ ``n``; True once in a rest."""
+        L = int(B.hi[b] - B.lo[b])
+        n_m = int(B.mhi[b] - B.mlo[b])
+        gm, am = B.w_mean[b], B.a_mean[b]
+        mm = B.m_mean[b] if n_m else None
+        sg, sa = n["gyro"], n["accel"]
+        still = L >= 3 and float(B.w_std[b].max()) < k * sg and float(B.a_std[b].max()) < k * sa
+        prev = self.prev_means
+        if prev is not None and still:
+            d = math.sqrt(2.0 / L)
+            still = (float(np.abs(gm - prev[0]).max()) < 2 * k * sg * d
+                     and float(np.abs(am - prev[1]).max()) < 2 * k * sa * d)
+            if still and mm is not None and prev[2] is not None:
+                still = float(np.abs(mm - prev[2]).max()) < 2 * k * n["mag"] * math.sqrt(2.0 / n_m)
+        self.prev_means = (gm, am, mm if mm is not None else (prev[2] if prev is not None else None))
+        self.count = self.count + 1 if still else 0
+        self.still = still
+        return self.count >= rest_blocks
+
+
+@dataclass
+class HoldTracker:
+    """Whether the accel / mag reading of a block is *held* (its spread within the noise, on a re-quantised
+    lattice) and whether it is the same hold as the previous block's. A new hold needs a fresh hold-offset
+    state (a fresh quantisation error); :meth:`flags` says which."""
+
+    held: dict[str, bool] = field(default_factory=lambda: {"accel": False, "mag": False})
+
+    def flags(self, B: Blocks, b: int, n: dict[str, float], q: dict[str, Any], prev: tuple[Any, Any, Any] | None,
+              sensors: tuple[str, ...]) -> tuple[dict[str, bool], list[str], bool]:
+        """Held flags of block ``b``, the sensors whose hold offset restarts, and whether a held reading
+        started anew. ``prev``: the previous block's means (:attr:`RestDetector.prev_means`, read before
+        the rest detector sees this block); ``sensors``: those with hold states; ``q`` the lattices."""
+        out = {"accel": False, "mag": False}
+        resets: list[str] = []
+        new = False
+        if not sensors:
+            return out, resets, new
+        cnt = {"accel": int(B.hi[b] - B.lo[b]), "mag": int(B.mhi[b] - B.mlo[b])}
+        for s, mean, std, pi in (("accel", B.a_mean[b], B.a_std[b], 1), ("mag", B.m_mean[b], B.m_std[b], 2)):
+            if s not in sensors or cnt[s] < 2:
+                self.held[s] = False
+                continue
+            qs = q.get(s, 0.0)
+            held = bool(np.all(std <= 2.0 * n[s] + 0.5 * qs))
+            same = (held and self.held[s] and prev is not None and prev[pi] is not None
+                    and bool(np.all(np.abs(mean - prev[pi]) < qs + 3 * n[s] * math.sqrt(2.0 / cnt[s]))))
+            if not same:
+                resets.append(s)
+                new = new or held
+            self.held[s] = held
+            out[s] = held
+        return out, resets, new

@@ -1,0 +1,172 @@
+"""Noise of the online filter: measurement σ from the sensor specs, the log's lattice and the measured
+level; process noise (Q) of a block; the allowance for what the sigma points cannot see.
+
+* :meth:`NoiseModel.spec_noise` — per-sample σ of each raw reading from its spec (white + own ADC);
+* :meth:`NoiseModel.noise` — that, with a format's re-quantisation q²/12 and the measured level where it
+  is far above the spec (:meth:`NoiseModel.monitor`, third differences of the raw data);
+* :meth:`NoiseModel.process_noise`, :meth:`NoiseModel.cal_rw` — the diagonal of Q: angle random walk of
+  the gyro, random walk of the calibration terms;
+* :func:`bilinear_var` — the gyro rate error δM·δo the unscented transform leaves out;
+* :func:`hold_sigma`, :func:`lattice_plan` — the mean error of held readings on a coarse lattice.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..model import SENSORS
+from ..specs import FIELD_GAUSS, SensorSpec
+from .layout import ATT, DIP, SENSOR_SLICE
+
+Array = NDArray[np.float64]
+
+
+def hold_sigma(q: float, sigma_n: float) -> float:
+    """σ of the error of the mean of a held reading re-quantised to q (no averaging removes it).
+
+    A value already quantised by the sensor's ADC and then rounded to a coarser format lattice q is off
+    on average by a function of where it sits on the two lattices; white noise σ_n dithers it only
+    partly. Bound used: q/√12 · exp(−σ_n/q) (q/√12: no dither). Simulated for sensor lattices of
+    0.24–0.53 q and σ_n = 0.3–1.5 q, the rms error stays below this bound (e.g. 0.13 q at σ_n = q/2
+    against 0.18 q; ``tests/test_ukf.py::test_hold_sigma_bounds_double_quantisation``).
+    """
+    if q <= 0:
+        return 0.0
+    return q / math.sqrt(12.0) * math.exp(-sigma_n / q)
+
+
+
+def bilinear_var(P: Array) -> Array:
+    """Variance (rad²/s², per body axis) of the rate error the unscented transform leaves out: the
+    product δM·δo of the gyro's matrix and bias errors in ω = M (w − o) (eq. 1). Its sigma points move
+    M or o, never both, so the product — second order, but 0.04 rad/s for a cold start's 20 % × 0.2
+    rad/s — is invisible to them; unmodelled, the attitude drift it causes reads as information on the
+    scale (a bilinear term linearised at a wrong bias). Σ_j σ²(M_ij) σ²(o_j), with σ(M_ii) the scale's
+    σ and σ(M_ij) that of the axis angles; vanishes once the bias is known (a rest). P (n, n) the state
+    covariance."""
+    sig = np.sqrt(np.diag(P)[SENSOR_SLICE["gyro"]])
+    s_o, s_s = sig[0:3], sig[3:6]
+    s_ang = np.maximum(sig[6:9], sig[9:12]).max()
+    v_o = s_o * s_o
+    out: Array = s_s * s_s * v_o + s_ang**2 * (v_o.sum() - v_o)
+    return out
+
+
+def lattice_plan(q: dict[str, Any], sensors: tuple[str, ...], rate: float, mag_unit: float,
+                 specs: dict[str, SensorSpec]) -> list[tuple[str, bool, float]]:
+    """Per sensor in ``sensors``: whether its value lattice q[s] is a re-quantisation by the format (coarser
+    than 1.5 × the sensor's own ADC step) and the σ of a held reading's mean error (:func:`hold_sigma`)
+    on it. ``mag_unit`` the raw magnitude of the unit field (the mag spec is in gauss)."""
+    own = {"gyro": specs["gyro"].lsb, "accel": specs["accel"].lsb,
+           "mag": specs["mag"].lsb / FIELD_GAUSS * mag_unit}
+    white = {"gyro": specs["gyro"].sigma(rate), "accel": specs["accel"].sigma(rate),
+             "mag": specs["mag"].sigma(50.0) / FIELD_GAUSS * mag_unit}
+    return [(s, bool(q[s] > 1.5 * own[s]), hold_sigma(q[s], white[s])) for s in sensors]
+
+
+def mag_unit_of(x: Array) -> float:
+    """Raw magnitude of the unit field: 1 / mean mag scale of the state x."""
+    return float(1.0 / np.mean(x[SENSOR_SLICE["mag"]][3:6]))
+
+
+@dataclass
+class NoiseModel:
+    """The filter's noise levels. ``specs`` the sensor specs (from the config); ``ratio``, ``high`` the
+    measured noise against the spec (smoothed) and whether the sensor's noise is raised now."""
+
+    specs: dict[str, SensorSpec]
+    ratio: dict[str, float] = field(default_factory=lambda: {s: 1.0 for s in SENSORS})
+    high: dict[str, bool] = field(default_factory=lambda: {s: False for s in SENSORS})
+    _spec_key: tuple[float, float] | None = None
+    _spec_cache: dict[str, float] = field(default_factory=dict)
+    _rw_key: tuple[int, float] | None = None
+    _rw_cache: Array = field(default_factory=lambda: np.zeros(0))
+
+    def spec_noise(self, rate: float | None, x: Array) -> dict[str, float]:
+        """Per-sample σ of the raw readings from the specs (white noise + the sensor's own quantisation);
+        the mag's relative to the field, in the raw unit of the state x (gauss or milli-gauss)."""
+        r = rate or 100.0
+        s0 = SENSOR_SLICE["mag"].start + 3
+        key = (r, float(x[s0] + x[s0 + 1] + x[s0 + 2]))
+        if self._spec_key == key:
+            return dict(self._spec_cache)
+        self._spec_key = key
+        g, a, m = self.specs["gyro"], self.specs["accel"], self.specs["mag"]
+        self._spec_cache = {
+            "gyro": math.hypot(g.sigma(r), g.lsb / math.sqrt(12)),
+            "accel": math.hypot(a.sigma(r), a.lsb / math.sqrt(12)),
+            "mag": math.hypot(m.sigma(50.0), m.lsb / math.sqrt(12)) / FIELD_GAUSS * mag_unit_of(x),
+        }
+        return dict(self._spec_cache)
+
+    def noise(self, spec: dict[str, float], q: dict[str, Any]) -> dict[str, float]:
+        """Per-sample σ used by the filter: the spec's, the format's re-quantisation (q²/12, white part)
+        and, where the measured noise is far above the spec, scaled to the measured level."""
+        n = dict(spec)
+        for s in SENSORS:
+            if q.get(s + "_requant"):
+                n[s] = math.hypot(n[s], q[s] / math.sqrt(12.0))
+            if self.high[s]:
+                n[s] *= math.sqrt(self.ratio[s])
+        return n
+
+    def cal_rw(self, n: int, x: Array, ext_sigma: list[tuple[slice, float]], rw_factor: float) -> Array:
+        """Random-walk variance per second of every state (n,) (attitude entries 0): density × ``rw_factor``
+        per √s (bias), density/full-scale × ``rw_factor`` (dimensionless terms) — a slow drift allowance set
+        from the specs, not tuned per log; extensions (``ext_sigma``: (slice, prior σ)) their prior σ ×
+        ``rw_factor``; hold offsets none (a held value's error is constant)."""
+        s0 = SENSOR_SLICE["mag"].start + 3
+        key = (n, round(3.0 / (x[s0] + x[s0 + 1] + x[s0 + 2]), 6))  # the mag unit
+        if self._rw_key == key:
+            return self._rw_cache
+        q = np.zeros(n)
+        for s, spec in self.specs.items():
+            dens = spec.density if spec.density > 0 else spec.sigma(50.0) / math.sqrt(25.0)
+            unit = mag_unit_of(x) / FIELD_GAUSS if s == "mag" else 1.0
+            sl = SENSOR_SLICE[s]
+            q[sl.start : sl.start + 3] = (dens * unit * rw_factor) ** 2
+            q[sl.start + 3 : sl.stop] = (dens / spec.full_scale * rw_factor) ** 2
+        q[DIP] = (1e-6) ** 2
+        for sl, sig in ext_sigma:
+            q[sl] = (sig * rw_factor) ** 2
+        self._rw_key, self._rw_cache = key, q
+        return q
+
+    @staticmethod
+    def process_noise(cal_rw: Array, dt: float, rate: float | None, sigma_gyr: float) -> Array:
+        """Diagonal of Q for one block lasting ``dt`` s; ``sigma_gyr`` the gyro's per-sample σ (rad/s).
+
+        Attitude: angle random walk of the gyro, σ_gyr/r per sample for the r·dt samples the block spans
+        (rad², every axis; by its duration, so that dropped samples do not shrink it); calibration: the
+        random walk ``cal_rw`` (:meth:`cal_rw`) over dt.
+        """
+        r = rate or 100.0
+        q = cal_rw * dt
+        q[ATT] = dt * r * (sigma_gyr / r) ** 2
+        return q
+
+    def monitor(self, sensor: str, var: float, spec: float, q: dict[str, Any], tau_blocks: float,
+                high: float, low: float) -> tuple[str, str] | None:
+        """Measured per-sample noise ``var`` (third differences of the block, :func:`.blocks.third_diff_var`)
+        against the spec σ ``spec``, smoothed over ``tau_blocks``; raises the sensor's noise when it is
+        above ``high`` × the spec variance and returns to the spec below ``low``. Returns the event
+        (kind, detail) of a change, or None. NaN (too few regular samples): no change."""
+        if not math.isfinite(var):
+            return None
+        if q.get(sensor + "_requant"):
+            spec = math.hypot(spec, q[sensor] / math.sqrt(12.0))
+        a = 1.0 / tau_blocks
+        r = (1 - a) * self.ratio[sensor] + a * var / spec**2
+        self.ratio[sensor] = r
+        if not self.high[sensor] and r > high:
+            self.high[sensor] = True
+            return "noise_high", f"{sensor} noise {math.sqrt(r):.2g}× its spec: its weight lowered"
+        if self.high[sensor] and r < low:
+            self.high[sensor] = False
+            return "noise_normal", f"{sensor} noise back to {math.sqrt(r):.2g}× its spec"
+        return None

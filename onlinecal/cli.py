@@ -77,6 +77,16 @@ def cmd_simulate(a: argparse.Namespace) -> int:
     return 0
 
 
+def _print_observability(cal: Any) -> None:
+    """What the data determined and what not, in words (meta.online.observability, issue 10)."""
+    from .ukf.vehicle import observability_text
+
+    rep = (cal.meta or {}).get("online", {}).get("observability")
+    if rep:
+        for line in observability_text(rep):
+            print(line)
+
+
 def _report_dir(path: str) -> Path:
     p = Path(path)
     try:
@@ -187,6 +197,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
             written = write_report(report, logs, "replay", batch=batch, online=res,
                                    init=None if batch is not None else init, progress=st)
     print(truth_table(None, init, res.calibration))
+    _print_observability(res.calibration)
     return _wrote(res.calibration, a.json, report, written)
 
 
@@ -280,6 +291,7 @@ def cmd_run(a: argparse.Namespace) -> int:
     print(f"link: received {ln['received']}, lost {ln['lost']}, duplicates {ln['duplicates']}, "
           f"reordered {ln['reordered']}, late {ln['dropped_late']}, reconnects {ln['reconnects']}, "
           f"resumes {ln['resumes']}; ended: {res.stop_reason}")
+    _print_observability(res.calibration)
     if res.missing_motion:
         print("still needed: " + "; ".join(res.missing_motion))
     if a.json:

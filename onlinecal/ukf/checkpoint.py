@@ -35,7 +35,7 @@ def get_state(f: Any) -> dict[str, Any]:
         "t_last": f._t_last, "w_last": f._w_last.tolist(), "att_ok": f._att_ok,
         "yaw_free": f._yaw_free,
         "align_yaw_next": f._align_yaw_next,
-        "mag_enabled": f.mag_enabled, "dip_known": f.dip_known, "mag_buf": f._mag_buf.buf,
+        "mag_enabled": f.mag_enabled, "dip_known": f.dip_known, "mag_buf": f._mag_buf.buf.tolist(),
         "mag_buf_next": finite_or_none(f._mag_buf.next_t), "mag_fit_next": finite_or_none(f._mag_fit_next),
         "next_trace": finite_or_none(f._next_trace), "n_imu": f._n_imu, "n_blocks": f._n_blocks,
         "nis": f._nis.stats, "events": f._log.events, "n_events": f._log.total, "trace": list(f._trace),
@@ -82,7 +82,7 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
     f._align_yaw_next = bool(d["align_yaw_next"])
     f.mag_enabled = bool(d["mag_enabled"])
     f.dip_known = bool(d["dip_known"])
-    f._mag_buf = MagCollector([list(v) for v in d["mag_buf"]], none_to_inf(d["mag_buf_next"]))
+    f._mag_buf = MagCollector(np.asarray(d["mag_buf"], float).reshape(-1, 3), none_to_inf(d["mag_buf_next"]))
     f._mag_fit_next = none_to_inf(d["mag_fit_next"])
     f._next_trace = none_to_inf(d["next_trace"])
     f._n_imu, f._n_blocks = int(d["n_imu"]), int(d["n_blocks"])

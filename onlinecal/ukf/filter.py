@@ -400,7 +400,7 @@ class OnlineCalibrator:
 
     def _mag_collect(self, tm: Array, m: Array) -> None:
         if not self.mag_enabled:
-            if not self._mag_buf.buf and m.shape[0] and (self.init is None or self.init.mag is None):
+            if not self._mag_buf.buf.shape[0] and m.shape[0] and (self.init is None or self.init.mag is None):
                 self._mag_prior_from_raw(m)
             self._mag_buf.add(tm, m, self.config.mag_buffer_max)
 
@@ -426,10 +426,10 @@ class OnlineCalibrator:
         """The mag's cold start (:func:`.attitude_init.fit_mag_cold`), tried once a second once enough
         samples are in; the filter's yaw is aligned to the field at the next mag block."""
         c = self.config
-        if t < self._mag_fit_next or len(self._mag_buf.buf) < c.mag_fit_min_samples:
+        if t < self._mag_fit_next or self._mag_buf.buf.shape[0] < c.mag_fit_min_samples:
             return
         self._mag_fit_next = t + 1.0
-        fit = fit_mag_cold(np.asarray(self._mag_buf.buf), c)
+        fit = fit_mag_cold(self._mag_buf.buf, c)
         if fit is None:
             return
         sl = SENSOR_SLICE["mag"]
@@ -440,7 +440,7 @@ class OnlineCalibrator:
         self.prior_sigma[sl] = fit.prior_sigma
         self.prior_x[sl] = self.x[sl]
         self.mag_enabled = True
-        self._mag_buf.buf = []
+        self._mag_buf.buf = np.zeros((0, 3))
         self._event("mag_cold_start", fit.detail, t)
         self._align_yaw_next = True
 
@@ -815,7 +815,8 @@ class OnlineCalibrator:
         return observability_report(["att.x", "att.y", "att.z"] + [nm for _, nm in pub],
                                     np.concatenate([np.zeros(3), self.sigma()[idx]]),
                                     np.concatenate([np.ones(3), self.prior_sigma[idx]]),
-                                    self._coverage, self._vehicle, held, lay.gauge, self.config.excited_ratio)
+                                    self._coverage, self._vehicle, held, lay.gauge, self.config.excited_ratio,
+                                    bool(self.mag_enabled))
 
     def missing_motion(self) -> list[str]:
         """What motion is still needed to excite the parameters that are not yet excited."""

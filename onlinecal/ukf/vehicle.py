@@ -170,7 +170,8 @@ _OTHER = {"x": ("y", "z"), "y": ("x", "z"), "z": ("x", "y")}
 _XI_TURN = {"x": ("y", "z"), "y": ("x", "z"), "z": ("x", "y")}
 
 
-def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str | None) -> tuple[str, str]:
+def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str | None,
+         mag_used: bool = True) -> tuple[str, str]:
     """(reason, motion needed) for a term the data did not determine."""
     if held:
         return (f"held at its prior: it defines the body frame (gauge: the {gauge}'s frame); no data can "
@@ -206,6 +207,12 @@ def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str |
         return (f"{len(cov.rest_dirs)} distinct attitude(s) at rest" + extra,
                 "hold still in attitudes between the axes (e.g. 45° tilts), as in the paper's 12 positions")
     # mag
+    if not mag_used:
+        return ("the magnetometer was never calibrated: its cold fit needs the field to sweep directions in "
+                "3-D (yaw turns with small tilts sweep a band, on which the centre and scale along the band's "
+                "axis trade off against the gyro's scale)",
+                "turn the vehicle through all attitudes (a tumble, or full turns about three axes) once, "
+                "or start from a bench calibration (--init CAL.json)")
     sw = float(cov.mag_dirs.mean())
     if p in ("bias", "scale"):
         return (f"the field swept {100 * sw:.0f} % of the directions around the sensor",
@@ -216,7 +223,7 @@ def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str |
 
 def observability_report(names: list[str], sigma: Array, prior_sigma: Array, cov: MotionCoverage,
                          vehicle: VehicleDetector, held: set[str], gauge: str | None,
-                         ratio: float = 0.5) -> dict[str, Any]:
+                         ratio: float = 0.5, mag_used: bool = True) -> dict[str, Any]:
     """Which terms the data determined (final σ < ``ratio`` × prior σ) and which not, why, and what motion
     would: ``{"determined": [term...], "undetermined": [{"term", "sigma_ratio", "reason",
     "motion_needed"}...], "coverage": {...}, "vehicle": {...}, "rule": str}``. ``names`` (n,) state names
@@ -230,7 +237,7 @@ def observability_report(names: list[str], sigma: Array, prior_sigma: Array, cov
         if nm not in held and r < ratio:
             det.append(nm)
             continue
-        why, need = _why(nm, cov, vehicle.active, nm in held, gauge)
+        why, need = _why(nm, cov, vehicle.active, nm in held, gauge, mag_used)
         und.append({"term": nm, "sigma_ratio": round(r, 4), "reason": why, "motion_needed": need})
     return {"rule": f"determined: final σ < {ratio:g} × prior σ; the others keep (about) their prior and "
                     "are not calibrated by this data",

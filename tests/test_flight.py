@@ -161,3 +161,30 @@ def test_flight_numbers_reduced_seeds(profile, start):
     assert max(r.gyro_bias_err_60s for r in runs) < 1e-3
     det = np.array([r.determined for r in runs])
     assert np.all(np.abs(Z[det]) < 3)
+
+
+# -- inter-sensor alignment learnt cold, with an explicit gauge (issue 10 item 4) ---------------------
+
+def _matrix_errors_after_common_rotation(cal, truth) -> dict[str, float]:
+    """Relative spectral-norm error of each sensor's matrix after the one rotation Q (orthogonal
+    Procrustes over all three) that best maps the truth's body frame onto the estimate's."""
+    est = {s: cal.sensor(s).matrix for s in ("gyro", "accel", "mag")}
+    tru = {s: truth.sensor(s).matrix for s in est}
+    H = sum(tru[s] @ est[s].T for s in est)
+    U, _, Vt = np.linalg.svd(H)
+    Q = Vt.T @ np.diag([1, 1, np.linalg.det(Vt.T @ U.T)]) @ U.T
+    return {s: float(np.linalg.norm(est[s] - Q @ tru[s], 2) / np.linalg.norm(tru[s], 2)) for s in est}
+
+
+@pytest.mark.parametrize("seed", [31, pytest.param(32, marks=pytest.mark.slow), pytest.param(33, marks=pytest.mark.slow)])
+def test_paper_cold_start_learns_every_alignment(seed):
+    """Cold (--init none) on the paper session: every matrix within 0.5 % of the truth once the common
+    rotation is removed, the accelerometer included (was 1.9–2.1 % with the gauge held at the cold prior's
+    2°: the others' alignment to it was not learnt). The gauge is recorded: the accelerometer's alpha."""
+    sim = simulate("paper", seed)
+    res = replay([sim.data], None)
+    err = _matrix_errors_after_common_rotation(res.calibration, sim.truth.calibration)
+    assert max(err.values()) < 0.005, err
+    g = res.calibration.meta["online"]["gauge"]
+    assert g["sensor"] == "accel" and g["terms"] == ["alpha"]
+    assert np.allclose(res.calibration.accel.alpha, 0.0, atol=1e-6)

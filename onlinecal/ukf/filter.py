@@ -416,6 +416,8 @@ class OnlineCalibrator:
         x = np.concatenate([np.zeros(3), np.full(3, 1.0 / r), np.zeros(6)])
         sig = np.concatenate([np.full(3, cs["bias"] * r), np.full(3, cs["scale"] / r),
                               np.full(3, cs["alpha"]), np.full(3, cs["xi"])])
+        if self.gauge == "mag":  # its held terms define B: keep their prior
+            x[6:], sig[6:] = self.x[sl][6:], np.sqrt(np.diag(self.P)[sl][6:])
         self.x[sl] = x
         self.P[sl, :] = 0.0
         self.P[:, sl] = 0.0

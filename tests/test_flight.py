@@ -176,7 +176,7 @@ def _matrix_errors_after_common_rotation(cal, truth) -> dict[str, float]:
     return {s: float(np.linalg.norm(est[s] - Q @ tru[s], 2) / np.linalg.norm(tru[s], 2)) for s in est}
 
 
-@pytest.mark.parametrize("seed", [31, pytest.param(32, marks=pytest.mark.slow), pytest.param(33, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("seed", [31, *(pytest.param(k, marks=pytest.mark.slow) for k in (32, 33))])
 def test_paper_cold_start_learns_every_alignment(seed):
     """Cold (--init none) on the paper session: every matrix within 0.5 % of the truth once the common
     rotation is removed, the accelerometer included (was 1.9–2.1 % with the gauge held at the cold prior's

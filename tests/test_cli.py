@@ -29,7 +29,7 @@ def test_simulate_then_batch_through_tlog(session):
     r = run("batch", str(log), "--json", str(out))
     assert r.returncode == 0, r.stderr
     cal = json.loads(out.read_text())
-    assert cal["schema"] == "onlinecal.calibration/1" and cal["source"] == "batch"
+    assert cal["schema"] == "onlinecal.calibration/2" and cal["source"] == "batch"
     # through RAW_IMU's 1 mrad/s quantisation the gyro bias is still well inside 1e-3 rad/s
     err = np.abs(np.array(cal["gyro"]["bias"]) - truth["calibration"]["gyro"]["bias"])
     assert err.max() < 1e-3

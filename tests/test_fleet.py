@@ -82,7 +82,7 @@ def test_jobs_and_dask_agree_exactly_and_a_corrupt_log_is_isolated(short_fleet):
     for r, n in zip((r1[0], r1[2], r1[3]), n_imu, strict=True):
         assert r["ok"] and r["error"] is None and r["init"] == "file" and r["n_imu"] == n
         cal = r["calibration"]
-        assert cal["schema"] == "onlinecal.calibration/1" and cal["source"] == "online"
+        assert cal["schema"] == "onlinecal.calibration/2" and cal["source"] == "online"
         json.dumps(r, allow_nan=False)  # strict JSON: no NaN/Infinity anywhere
         assert r["t_start"] is None  # a CSV with a boot-relative clock carries no date
     s = fleet_summary(r1)

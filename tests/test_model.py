@@ -61,7 +61,7 @@ def test_calibration_json_round_trips_exactly(tmp_path):
     assert back == cal
     assert np.array_equal(back.gyro.matrix, cal.gyro.matrix)  # bit-exact
     d = json.loads(p.read_text())
-    assert d["schema"] == "onlinecal.calibration/1" and "mag" not in d
+    assert d["schema"] == "onlinecal.calibration/2" and "mag" not in d
     assert np.allclose(d["gyro"]["scale"], c.scale)
 
 

@@ -56,6 +56,7 @@ def test_layout_matches_model():
     assert np.allclose(P[:, 2], R[:, 0] @ R[:, 1] @ R[:, 2], atol=1e-13)
 
 
+@pytest.mark.slow
 def test_batch_start_paper_accuracy_and_consistency(paper1):
     """From the batch result: every error ≤ 1.5 × the batch's own error + 1 batch σ, ≥ 95 % inside 3σ."""
     sim, batch = paper1
@@ -77,6 +78,7 @@ def test_batch_start_paper_accuracy_and_consistency(paper1):
         assert set(PARAMS) <= set(cal2.sensor(s).sigma)
 
 
+@pytest.mark.slow
 def test_gyro_nonorthogonality_from_rich_motion(paper1):
     """xi_gyr from the paper session's turns and tumble, no rate table: gyro cold (prior σ 0.02 rad)."""
     sim, batch = paper1
@@ -89,6 +91,7 @@ def test_gyro_nonorthogonality_from_rich_motion(paper1):
     assert all(res.observability[f"gyro.xi.{a}"]["excited"] for a in "xyz")
 
 
+@pytest.mark.slow
 def test_cold_gyro_bias_and_scale_within_60s_of_motion(paper1):
     """Cold gyro and accel (mag from the batch): after the 30-s rest and 60 s of motion."""
     sim, batch = paper1
@@ -205,6 +208,7 @@ DEGENERATE = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", list(DEGENERATE))
 def test_degenerate_motion_does_not_drag_unexcited(kind, monkeypatch):
     build, unexc_axes = DEGENERATE[kind]
@@ -306,6 +310,7 @@ def short_paper():
     return sim, _offset_prior(sim.truth.calibration, 7)
 
 
+@pytest.mark.slow
 def test_saturated_gyro_is_skipped_not_integrated(short_paper):
     """A gyro clipped at ±125 dps (the rotation phases peak at ~2.4 rad/s): the filter learns the rail,
     says so, skips those blocks instead of integrating the clipped rate, and stays consistent."""
@@ -439,6 +444,7 @@ EXT_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ext", list(EXT_CASES))
 def test_extension_state_recovers_hidden_effect(ext):
     """An extension state converges to the simulated effect within 3σ (to a few % of it), stays within 3σ
@@ -463,6 +469,7 @@ def test_extension_state_recovers_hidden_effect(ext):
         assert cal2.extensions == res.calibration.extensions
 
 
+@pytest.mark.slow
 def test_cold_gyro_and_accel_within_60s_of_motion_six_seeds():
     """The paper's error magnitudes (15 % gyro scale, 0.16 rad/s gyro bias; accel likewise) from a cold
     start of gyro and accel — prior σ 0.2 and 0.2 rad/s, 0.05 and 0.5 m/s², mag known to a few σ — after
@@ -481,6 +488,7 @@ def test_cold_gyro_and_accel_within_60s_of_motion_six_seeds():
             assert np.all(np.asarray(c.sigma["scale"]) < 0.01), (seed, s, c.sigma["scale"])
 
 
+@pytest.mark.slow
 def test_init_none_all_three_sensors_within_60s_of_motion():
     """``--init none``: nothing from the batch, the mag from its own cold sphere fit (after ~30 s of the
     motion). After the 30-s rest and 60 s of motion every bias and scale of all three sensors is within
@@ -501,6 +509,7 @@ def test_init_none_all_three_sensors_within_60s_of_motion():
             assert np.all(rel < 0.1 * UKFConfig().cold_sigma[s]["scale"]), (seed, s, rel)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 3, 6])
 def test_cold_start_with_batch_mag(seed):
     """Cold gyro and accel, the mag from the batch (a tighter prior than the six-seed test's), after the
@@ -520,6 +529,7 @@ def test_cold_start_with_batch_mag(seed):
         assert np.all(np.asarray(c.sigma["scale"]) < 0.01), (s, c.sigma["scale"])  # resolved, from 0.2 / 0.05
 
 
+@pytest.mark.slow
 def test_memory_does_not_grow_with_the_log():
     """The filter's retained memory after 400 s of a streamed flight is what it was after 100 s: state,
     buffers and the mag fit's sample store are bounded (the trace is off here; it is capped by

@@ -95,6 +95,6 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
     if gyro is None and acc is None and mag is None:
         raise FitError("; ".join(warnings) or "no sensor could be calibrated")
     res = BatchResult(Calibration(gyro=gyro, accel=acc, mag=mag, source="batch"), segs, steps, warnings)
-    cal = res.calibration.replace(meta={"batch": res.summary()})
+    cal = res.calibration.replace(meta={"batch": res.summary()}, gauge="gyro_phases" if gyro is not None and str(steps["gyro"].figures.get("method", "")).startswith("phases") else None)  # noqa: E501 (B: model.Gauge)
     res.calibration = cal
     return res

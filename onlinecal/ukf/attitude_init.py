@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from ..batch.ellipsoid import FitError, fit_norm_lm
 from ..model import decompose
 from .config import UKFConfig
 from .geometry import triad, yaw_rotation
@@ -24,7 +25,7 @@ Array = NDArray[np.float64]
 E_Z = np.array([0.0, 0.0, 1.0])
 
 
-def initial_attitude(f: Array, h: Array | None, h_world: Array, s_rp: float, s_y: float) -> tuple[Array, Array]:
+def initial_attitude(f: Array, h: Array | None, h_world: Array | None, s_rp: float, s_y: float) -> tuple[Array, Array]:
     """Attitude R (world ← body) (3, 3) from the unit specific force f (3,) and the unit field h (3,) in
     the body frame (TRIAD against e_z and ``h_world``), and the covariance (3, 3) of the body-frame
     attitude error for σ ``s_rp`` (roll, pitch) and ``s_y`` (heading) about the world axes.
@@ -32,7 +33,7 @@ def initial_attitude(f: Array, h: Array | None, h_world: Array, s_rp: float, s_y
     ``h`` None (no calibrated mag): the yaw is arbitrary (the body x axis is put east) and ``s_y`` should
     be diffuse.
     """
-    if h is None:
+    if h is None or h_world is None:
         h = np.array([1.0, 0.0, 0.0]) if abs(f[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
         h_world = np.array([1.0, 0.0, 0.0])
     R = triad(f, h, E_Z, h_world)
@@ -108,8 +109,8 @@ def fit_mag_cold(x: Array, c: UKFConfig) -> MagFit | None:
     (eq. 17) where the samples carry it; None unless they span enough directions and pin the centre.
 
     Sphere: o_mag = centre, s_mag = 1/r (all axes), angles 0, σ ``c.mag_fit_sigma``. Ellipsoid (geometric
-    fit, :func:`ellipsoid_gn`): the soft iron starts near its value, σ ``c.mag_ellipsoid_sigma``, so the
-    first mag updates stay in the UKF's near-linear range.
+    fit, :func:`onlinecal.batch.ellipsoid.fit_norm_lm`): the soft iron starts near its value, σ
+    ``c.mag_ellipsoid_sigma``, so the first mag updates stay in the UKF's near-linear range.
     """
     m0 = x.mean(axis=0)
     xc = x - m0  # centred for conditioning
@@ -158,8 +159,9 @@ def _ellipsoid_refine(x: Array, o: Array, r: float, c: UKFConfig) -> tuple[Array
     """The 12 mag terms and σ from the geometric ellipsoid fit started at the sphere (o, r), or None when
     its covariance says the samples do not carry an ellipsoid."""
     try:
-        o_e, M_e, cov_e, _ = ellipsoid_gn(x, o, np.eye(3) / r)
-        sd = np.sqrt(np.clip(np.diag(cov_e), 0, None))
+        fit = fit_norm_lm(x, 1.0, o, np.eye(3) / r)  # eq. 17, the batch's own fit (one owner)
+        o_e, M_e = fit.o, fit.M
+        sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))
         if (np.all(np.isfinite(sd)) and sd[:3].max() < c.mag_fit_max_centre_sigma * r
                 and sd[3:].max() < 0.01 / r and np.linalg.det(M_e) > 0):
             s_e, a_e, xi_e = decompose(M_e)
@@ -167,85 +169,6 @@ def _ellipsoid_refine(x: Array, o: Array, r: float, c: UKFConfig) -> tuple[Array
             return (np.concatenate([o_e, s_e, a_e, xi_e]),
                     np.concatenate([np.maximum(3 * sd[:3], fe["bias"] * r), np.full(3, fe["scale"] / r),
                                     np.full(3, fe["alpha"]), np.full(3, fe["xi"])]))
-    except (ValueError, np.linalg.LinAlgError):
+    except (FitError, ValueError, np.linalg.LinAlgError):
         pass
     return None
-
-
-_IU = np.triu_indices(3)
-
-
-def ellipsoid_gn(x: Array, o0: Array, M0: Array, max_iter: int = 40,
-                 reject_sigma: float = 5.0) -> tuple[Array, Array, Array, float]:
-    """Geometric ellipsoid fit ‖M (x − o)‖ = 1 (Zhang et al. eq. 17) by Levenberg–Marquardt with the
-    analytic Jacobian; o (3,) and a symmetric M (its 6 upper-triangle entries) as the batch fit has them.
-
-    r_i = ‖y_i‖ − 1 with y_i = M d_i, d_i = x_i − o, n_i = y_i/‖y_i‖: ∂r_i/∂o = −M n_i and
-    ∂r_i/∂M_jk = n_j d_k + n_k d_j (j < k), n_j d_j (j = k). x (N, 3) raw samples; o0, M0 the start (a
-    sphere fit). One outlier rejection at ``reject_sigma`` × MAD, then a refit. Returns (o, M, cov (9, 9)
-    of (o, upper triangle of M) from the Gauss–Newton normal matrix and the residual variance, residual
-    rms). A fixed iteration budget keeps the cost bounded (a few ms) where the data do not carry an
-    ellipsoid; the caller rejects such fits by their covariance.
-    """
-    jj, kk = _IU
-    off = (jj != kk).astype(float)
-
-    def resid_jac(p: Array, pts: Array) -> tuple[Array, Array]:
-        o = p[:3]
-        M = np.zeros((3, 3))
-        M[_IU] = p[3:]
-        M = M + np.triu(M, 1).T
-        d = pts - o
-        y = d @ M
-        ny = np.sqrt(np.einsum("ij,ij->i", y, y))
-        nv = y / ny[:, None]
-        J = np.empty((pts.shape[0], 9))
-        J[:, :3] = -(nv @ M)
-        J[:, 3:] = nv[:, jj] * d[:, kk] + off * nv[:, kk] * d[:, jj]
-        return ny - 1.0, J
-
-    def solve(p: Array, pts: Array) -> Array:
-        lam = 1e-3
-        r, J = resid_jac(p, pts)
-        cost = float(r @ r)
-        for _ in range(max_iter):
-            A = J.T @ J
-            g = J.T @ r
-            try:
-                step = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
-            except np.linalg.LinAlgError:
-                break
-            p_new = p + step
-            r_new, J_new = resid_jac(p_new, pts)
-            c_new = float(r_new @ r_new)
-            if np.isfinite(c_new) and c_new < cost:
-                done = cost - c_new < 1e-12 * cost
-                p, r, J, cost = p_new, r_new, J_new, c_new
-                lam = max(lam / 10.0, 1e-12)
-                if done:
-                    break
-            else:
-                lam *= 10.0
-                if lam > 1e8:
-                    break
-        return p
-
-    p = solve(np.concatenate([o0, M0[_IU]]), x)
-    keep = np.ones(x.shape[0], bool)
-    if x.shape[0] >= 36:
-        r, _ = resid_jac(p, x)
-        mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-        keep = np.abs(r) <= max(reject_sigma * mad, 1e-12)
-        if keep.sum() >= 9 and not keep.all():
-            p = solve(p, x[keep])
-    r, J = resid_jac(p, x[keep])
-    s2 = float(r @ r) / max(1, int(keep.sum()) - 9)
-    try:
-        cov = np.linalg.inv(J.T @ J) * s2
-    except np.linalg.LinAlgError:
-        cov = np.full((9, 9), np.inf)
-    M = np.zeros((3, 3))
-    M[_IU] = p[3:]
-    return p[:3], M + np.triu(M, 1).T, cov, math.sqrt(float(np.mean(r * r)))
-
-

@@ -17,7 +17,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..io.base import ImuData
+
 Array = NDArray[np.float64]
+Index = NDArray[np.intp]
 
 
 def value_lattice(v: Array) -> float:
@@ -40,7 +43,7 @@ def value_lattice(v: Array) -> float:
     return q if float(np.max(np.abs(k - np.round(k)))) < 1e-6 else 0.0
 
 
-def third_diff_var(v: Array, t: Array, seg: Array, n_seg: int, min_windows: int = 3) -> Array:
+def third_diff_var(v: Array, t: Array, seg: Index, n_seg: int, min_windows: int = 3) -> Array:
     """Per-segment white-noise variance from third differences: median |Δ³v|² / (3·20·0.789), (n_seg,).
 
     v (N, 3) samples at times t (N,) s, seg (N,) the segment (filter block) of each sample, ascending.
@@ -71,7 +74,7 @@ def third_diff_var(v: Array, t: Array, seg: Array, n_seg: int, min_windows: int 
     return out
 
 
-def _seg_mean_std(v: Array, lo: Array, cnt: Array) -> tuple[Array, Array]:
+def _seg_mean_std(v: Array, lo: Index, cnt: Index) -> tuple[Array, Array]:
     """Mean and standard deviation (ddof 0) per axis of the segments [lo, lo + cnt) of v (N, 3), which
     follow each other without holes; (n_seg, 3) each, NaN for empty segments. Sums per segment
     (np.add.reduceat), so a segment's figures do not depend on where the buffer it sits in starts."""
@@ -101,10 +104,10 @@ class Blocks:
     spreads (n_b, 3), the third-difference noise variances (n_b,), the jerk term Σ|Δ²ω·Δt/4|² and its count, the largest
     |reading| per axis; per mag sample its interpolation index into [t_prev, t] and fraction."""
 
-    lo: Array
-    hi: Array
-    mlo: Array
-    mhi: Array
+    lo: Index
+    hi: Index
+    mlo: Index
+    mhi: Index
     w_ext: Array
     dt: Array
     w_mean: Array
@@ -118,7 +121,7 @@ class Blocks:
     jerk_n: Array
     w_absmax: Array
     a_absmax: Array
-    m_j: Array
+    m_j: Index
     m_frac: Array
 
 
@@ -254,7 +257,7 @@ class RestDetector:
     a magnetometer cannot be told from rest (nothing measures it). State: the previous block's means, the
     count of still blocks in a row, whether the last block was still."""
 
-    prev_means: tuple[Any, Any, Any] | None = None
+    prev_means: tuple[Any, ...] | None = None
     count: int = 0
     still: bool = False
 
@@ -292,7 +295,7 @@ class HoldTracker:
 
     held: dict[str, bool] = field(default_factory=lambda: {"accel": False, "mag": False})
 
-    def flags(self, B: Blocks, b: int, n: dict[str, float], q: dict[str, Any], prev: tuple[Any, Any, Any] | None,
+    def flags(self, B: Blocks, b: int, n: dict[str, float], q: dict[str, Any], prev: tuple[Any, ...] | None,
               sensors: tuple[str, ...]) -> tuple[dict[str, bool], list[str], bool]:
         """Held flags of block ``b``, the sensors whose hold offset restarts, and whether a held reading
         started anew. ``prev``: the previous block's means (:attr:`RestDetector.prev_means`, read before
@@ -317,3 +320,78 @@ class HoldTracker:
             self.held[s] = held
             out[s] = held
         return out, resets, new
+
+
+@dataclass
+class SampleBuffer:
+    """Samples fed but not yet cut into filter blocks: IMU times t (N,) s, rates w (N, 3), specific force
+    a (N, 3), temperature T (N,) °C; mag times tm (M,) s and readings m (M, 3)."""
+
+    t: Array = field(default_factory=lambda: np.zeros(0))
+    w: Array = field(default_factory=lambda: np.zeros((0, 3)))
+    a: Array = field(default_factory=lambda: np.zeros((0, 3)))
+    T: Array = field(default_factory=lambda: np.zeros(0))
+    tm: Array = field(default_factory=lambda: np.zeros(0))
+    m: Array = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def append(self, block: ImuData) -> None:
+        if block.n_imu:
+            self.t = np.concatenate([self.t, block.t_imu])
+            self.w = np.concatenate([self.w, block.gyro.reshape(-1, 3)])
+            self.a = np.concatenate([self.a, block.acc.reshape(-1, 3)])
+            self.T = np.concatenate([self.T, np.asarray(block.temp, float).reshape(-1)])
+        if block.n_mag:
+            self.tm = np.concatenate([self.tm, block.t_mag])
+            self.m = np.concatenate([self.m, block.mag.reshape(-1, 3)])
+
+    def drop(self, i: int, k: int) -> None:
+        """Forget the first i IMU and k mag samples (filtered)."""
+        self.t, self.w, self.a, self.T = self.t[i:], self.w[i:], self.a[i:], self.T[i:]
+        self.tm, self.m = self.tm[k:], self.m[k:]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able, with the checkpoint's keys (no temperature: None)."""
+        return {"pend_t": self.t.tolist(), "pend_w": self.w.tolist(), "pend_a": self.a.tolist(),
+                "pend_T": [None if not math.isfinite(v) else float(v) for v in self.T.tolist()],
+                "pend_tm": self.tm.tolist(), "pend_m": self.m.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SampleBuffer:
+        return cls(np.asarray(d["pend_t"], float).reshape(-1), np.asarray(d["pend_w"], float).reshape(-1, 3),
+                   np.asarray(d["pend_a"], float).reshape(-1, 3),
+                   np.array([math.nan if v is None else v for v in d["pend_T"]], float).reshape(-1),
+                   np.asarray(d["pend_tm"], float).reshape(-1), np.asarray(d["pend_m"], float).reshape(-1, 3))
+
+
+@dataclass
+class Lattice:
+    """The value lattice of the current log per sensor (``q``: quantum, 0: none; ``<sensor>_requant``: a
+    re-quantisation by the format, set by the filter), detected on its first samples; the mag's once 16
+    of its samples are in (``mag_buf``, also the raw field's scale until then). None until a log has started."""
+
+    q: dict[str, Any] | None = None
+    mag_buf: list[list[float]] = field(default_factory=list)
+
+    def detect(self, w: Array, a: Array, m: Array) -> tuple[str, ...]:
+        """Lattices of the first samples w, a (and m, if 16 or more); the sensors found."""
+        self.q = {"gyro": value_lattice(w), "accel": value_lattice(a)}
+        self.mag_buf = m.tolist()
+        if m.shape[0] >= 16:
+            self.q["mag"] = value_lattice(m)
+        return tuple(s for s in ("gyro", "accel", "mag") if s in self.q)
+
+    def settle(self) -> None:
+        """Drop the mag samples once its lattice is known (after the filter has used them for the unit)."""
+        if self.q is not None and "mag" in self.q:
+            self.mag_buf = []
+
+    def late_mag(self, m: Array) -> bool:
+        """Collect mag samples m (M, 3) until 16 are in; True when the mag's lattice was just found (the
+        samples stay until :meth:`settle`)."""
+        if self.q is None or "mag" in self.q or not m.shape[0]:
+            return False
+        self.mag_buf += m.tolist()
+        if len(self.mag_buf) < 16:
+            return False
+        self.q["mag"] = value_lattice(np.asarray(self.mag_buf))
+        return True

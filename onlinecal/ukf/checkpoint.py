@@ -9,7 +9,7 @@ import numpy as np
 
 from ..model import Calibration
 from .attitude_init import MagCollector
-from .blocks import HoldTracker, RailDetector, RestDetector
+from .blocks import HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer
 from .config import UKFConfig
 from .health import NisMonitor, finite_or_none, none_to_inf
 from .rest import RestAccumulator
@@ -29,9 +29,7 @@ def get_state(f: Any) -> dict[str, Any]:
         "x": f.x.tolist(), "P": f.P.tolist(), "R_nom": f.R_nom.tolist(),
         "prior_sigma": f.prior_sigma.tolist(), "prior_x": f.prior_x.tolist(),
         "rate": f._rate, "L": f._L,
-        "pend_t": f._pend_t.tolist(), "pend_w": f._pend_w.tolist(), "pend_a": f._pend_a.tolist(),
-        "pend_T": [finite_or_none(v) for v in f._pend_T.tolist()],
-        "pend_tm": f._pend_tm.tolist(), "pend_m": f._pend_m.tolist(),
+        **f._buf.to_dict(),
         "t_last": f._t_last, "w_last": f._w_last.tolist(), "att_ok": f._att_ok,
         "yaw_free": f._yaw_free,
         "align_yaw_next": f._align_yaw_next,
@@ -42,7 +40,7 @@ def get_state(f: Any) -> dict[str, Any]:
         "rest_count": rd.count,
         "prev_means": None if rd.prev_means is None else [
             None if v is None else np.asarray(v).tolist() for v in rd.prev_means],
-        "q": f._q, "q_mag_buf": f._q_mag_buf, "held": f._holds.held,
+        "q": f._lat.q, "q_mag_buf": f._lat.mag_buf, "held": f._holds.held,
         "noise_ratio": f._noise.ratio, "noise_high": f._noise.high,
         "rail": f._rails.rail, "run": {k: [list(r) for r in v] for k, v in f._rails.run.items()},
         "clip_on": f._rails.clip_on, "T0": f._T0,
@@ -69,12 +67,7 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
     f.prior_sigma = np.asarray(d["prior_sigma"], float)
     f.prior_x = np.asarray(d["prior_x"], float)
     f._rate, f._L = d["rate"], int(d["L"])
-    f._pend_t = np.asarray(d["pend_t"], float).reshape(-1)
-    f._pend_w = np.asarray(d["pend_w"], float).reshape(-1, 3)
-    f._pend_a = np.asarray(d["pend_a"], float).reshape(-1, 3)
-    f._pend_T = np.array([np.nan if v is None else v for v in d["pend_T"]], float).reshape(-1)
-    f._pend_tm = np.asarray(d["pend_tm"], float).reshape(-1)
-    f._pend_m = np.asarray(d["pend_m"], float).reshape(-1, 3)
+    f._buf = SampleBuffer.from_dict(d)
     f._t_last = d["t_last"]
     f._w_last = np.asarray(d["w_last"], float)
     f._att_ok = bool(d["att_ok"])
@@ -93,10 +86,9 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
     f._log.total = int(d["n_events"])
     f._trace = deque(d["trace"], maxlen=c.trace_max_rows)
     pm = d.get("prev_means")
-    f._rest_det = RestDetector(None if pm is None else tuple(None if v is None else np.asarray(v, float) for v in pm),
-                               int(d.get("rest_count", 0)))
-    f._q = d["q"]
-    f._q_mag_buf = [list(v) for v in d["q_mag_buf"]]
+    prev = None if pm is None else (*(None if v is None else np.asarray(v, float) for v in pm),)
+    f._rest_det = RestDetector(prev, int(d.get("rest_count", 0)))
+    f._lat = Lattice(d["q"], [list(v) for v in d["q_mag_buf"]])
     f._holds = HoldTracker({k: bool(v) for k, v in d["held"].items()})
     f._noise.ratio = {k: float(v) for k, v in d["noise_ratio"].items()}
     f._noise.high = {k: bool(v) for k, v in d["noise_high"].items()}

@@ -96,8 +96,9 @@ class UKFConfig:
     rail_min: dict[str, float] = field(default_factory=lambda: {"gyro": 1.0, "accel": 14.7})
     rail_run: int = 40
     extra_states: tuple[str, ...] = ()  # model extensions, keys of EXTENSIONS
-    # partial update in motion: each measurement's R is at least this share of its predicted spread HPHᵀ,
-    # so that one block removes at most 1/(1 + share) of the prior's variance along it (4: a fifth) and
+    # partial update in motion: the gain is that of an R at least this share of the predicted spread HPHᵀ
+    # (the mean moves at most 1/(1 + share) of the way to the measurement; P, with the true R, then keeps
+    # (share² + R/HPHᵀ)/(1 + share)² of the prior's variance along it: 4 → at least 64 %) and
     # the rest comes from the next blocks, linearised at the improved estimate (0: off). Costs nothing once
     # converged (HPHᵀ ≪ R): the 20-seed batch-started figures are the same at 1 and 4. On a cold start it
     # keeps the first large turns from over-narrowing the prior: with the mag from the batch, every gyro

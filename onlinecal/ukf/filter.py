@@ -33,35 +33,30 @@ from scipy.stats import chi2
 from ..io.base import ImuData
 from ..model import SENSORS, Calibration
 from . import checkpoint
-from .attitude_init import (
-    MagCollector,
-    dip_of,
-    ellipsoid_gn,
-    fit_mag_cold,
-    initial_attitude,
-    set_yaw_variance,
-    yaw_to_north,
-)
-from .blocks import (
-    Blocks,
-    HoldTracker,
-    RailDetector,
-    RestDetector,
-    block_stats,
-    cut_blocks,
-    third_diff_var,
-    value_lattice,
-)
+from .attitude_init import MagCollector, dip_of, fit_mag_cold, initial_attitude, set_yaw_variance, yaw_to_north
+from .blocks import Blocks, HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer, block_stats, cut_blocks
+from .blocks import third_diff_var as third_diff_var  # re-exported
+from .blocks import value_lattice as value_lattice
 from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
-from .geometry import rodrigues1, rodrigues_n, rot_log
+from .geometry import rodrigues1, rot_log
 from .health import EventLog, NisMonitor
 from .layout import ATT, AXES, DIP, N_STATE, SENSOR_SLICE, correction, field_world, index, model_pair
-from .measurements import AccelModel, MagModel, Offsets, ZeroRateModel, field_body, gravity_body, gyro_offsets
-from .noise import NoiseModel, bilinear_var, hold_sigma, lattice_plan, mag_unit_of
+from .measurements import (
+    AccelModel,
+    MagModel,
+    Models,
+    Offsets,
+    ZeroRateModel,
+    gyro_offsets,
+    motion_measurements,
+    rest_measurements,
+)
+from .noise import NoiseModel, bilinear_var, lattice_plan, mag_unit_of
+from .noise import hold_sigma as hold_sigma  # re-exported
 from .outputs import calibration_of, extensions_of, extensions_sigma, missing_motion, observability, trace_row
 from .propagate import BlockPrediction, interp_weights, propagate_block
 from .rest import RestAccumulator
-from .state import StateLayout, choose_gauge, prior
+from .state import StateLayout, choose_gauge, prior, reset_states
 from .unscented import Gating, Measurement, UpdateResult, merwe_weights, predict_moments, sigma_points, update
 from .vehicle import MotionCoverage, VehicleDetector, observability_report, vehicle_accel_var
 
@@ -93,15 +88,14 @@ class OnlineCalibrator:
         self._trace: deque[dict[str, float]] = deque(maxlen=c.trace_max_rows)
         self._rate: float | None = None
         self._L = 0
-        self._clear_pending()
+        self._buf = SampleBuffer()  # samples fed, not yet filtered
         self._t_last: float | None = None
         self._w_last = np.zeros(3)
         self._att_ok = False
         self._next_trace = -math.inf
         self._n_imu = 0
         self._n_blocks = 0
-        self._q: dict[str, Any] | None = None  # per log: value lattice of each sensor (0: none), re-quantised?
-        self._q_mag_buf: list[list[float]] = []
+        self._lat = Lattice()  # per log: value lattice of each sensor
         self._rails = RailDetector()
         self._T0: float | None = None
         self._vehicle = VehicleDetector(c.vehicle_vibration_sigma, c.vehicle_dev_min)
@@ -116,9 +110,8 @@ class OnlineCalibrator:
         self._gates = {"accel": float(chi2.ppf(c.acc_gate_p, 3)), "mag": float(chi2.ppf(c.mag_gate_p, 3))}
         self._specs = c.sensor_specs()
         self._noise = NoiseModel(self._specs)
-        self._acc = AccelModel(c.gravity, c.acc_dev_gain, c.acc_lever_m)
-        self._mag = MagModel()
-        self._zr = ZeroRateModel(c.rest_rate_sigma)
+        self._models = Models(AccelModel(c.gravity, c.acc_dev_gain, c.acc_lever_m), MagModel(),
+                              ZeroRateModel(c.rest_rate_sigma))
         self.gauge, self._gauge_terms = choose_gauge(self.init, c)
 
     # ------------------------------------------------------------------------------------------
@@ -173,8 +166,8 @@ class OnlineCalibrator:
         self._hold_new = False
         self._holds = HoldTracker()
         self._nis = NisMonitor(c.nis_window, c.nis_band_p, c.divergence_factor, c.divergence_windows)
-        if self._q is not None:
-            self._apply_lattice(tuple(k for k in SENSORS if k in self._q))
+        if self._lat.q is not None:
+            self._apply_lattice(tuple(k for k in SENSORS if k in self._lat.q))
 
     def _add_hold(self, sensor: str, sigma: float) -> None:
         """Append the 3 hold-offset states of ``sensor`` (0 ± sigma), or reset them if present."""
@@ -194,10 +187,7 @@ class OnlineCalibrator:
 
     def _reset_hold(self, sensor: str) -> None:
         sl = self.lay.hold_slice[sensor]
-        self.x[sl] = 0.0
-        self.P[sl, :] = 0.0
-        self.P[:, sl] = 0.0
-        self.P[sl, sl] = np.eye(3) * self._hold_sigma[sensor] ** 2
+        reset_states(self.x, self.P, sl, 0.0, np.eye(3) * self._hold_sigma[sensor] ** 2)
         self.prior_sigma[sl] = self._hold_sigma[sensor]
 
     # ------------------------------------------------------------------------------------------
@@ -213,20 +203,10 @@ class OnlineCalibrator:
     def _process_noise(self, dt: float, sigma_gyr: float) -> Array:
         return NoiseModel.process_noise(self._cal_rw(), dt, self._rate, sigma_gyr)
 
-    def _detect_lattice(self, w: Array, a: Array, m: Array) -> None:
-        """Value lattice of gyro, accel (and mag, once it has samples) at the start of a log."""
-        self._q = {"gyro": value_lattice(w), "accel": value_lattice(a)}
-        self._q_mag_buf = m.tolist()
-        if m.shape[0] >= 16:
-            self._q["mag"] = value_lattice(m)
-        self._apply_lattice(tuple(s for s in SENSORS if s in self._q))
-        if "mag" in self._q:
-            self._q_mag_buf = []
-
     def _apply_lattice(self, sensors: tuple[str, ...]) -> None:
         """A lattice coarser than the sensor's own ADC is a re-quantisation by the format: its q²/12 joins
         the white noise and, with ``quant_hold``, the held-reading offsets join the state."""
-        q = self._q
+        q = self._lat.q
         assert q is not None
         for s, req, hs in lattice_plan(q, sensors, self._rate or 100.0, self._mag_unit_raw(), self._specs):
             q[s + "_requant"] = req
@@ -244,40 +224,24 @@ class OnlineCalibrator:
         """Raw field magnitude: from the mag scale once known, else the first raw samples' norm."""
         if self.mag_enabled:
             return mag_unit_of(self.x)
-        if self._q_mag_buf:
-            return float(np.median(np.linalg.norm(np.asarray(self._q_mag_buf), axis=1)))
+        if self._lat.mag_buf:
+            return float(np.median(np.linalg.norm(np.asarray(self._lat.mag_buf), axis=1)))
         return 1.0
 
     # ------------------------------------------------------------------------------------------
     # streaming
     def feed(self, block: ImuData) -> None:
         """Consume a block of any size. IMU samples beyond the last full filter block wait in a buffer."""
-        if block.n_imu:
-            self._pend_t = np.concatenate([self._pend_t, block.t_imu])
-            self._pend_w = np.concatenate([self._pend_w, block.gyro.reshape(-1, 3)])
-            self._pend_a = np.concatenate([self._pend_a, block.acc.reshape(-1, 3)])
-            self._pend_T = np.concatenate([self._pend_T, np.asarray(block.temp, float).reshape(-1)])
-        if block.n_mag:
-            self._pend_tm = np.concatenate([self._pend_tm, block.t_mag])
-            self._pend_m = np.concatenate([self._pend_m, block.mag.reshape(-1, 3)])
+        self._buf.append(block)
         self._process()
-
-    def _clear_pending(self) -> None:
-        """Empty the buffers of samples fed but not yet cut into filter blocks."""
-        self._pend_t = np.zeros(0)
-        self._pend_w = np.zeros((0, 3))
-        self._pend_a = np.zeros((0, 3))
-        self._pend_T = np.zeros(0)
-        self._pend_tm = np.zeros(0)
-        self._pend_m = np.zeros((0, 3))
 
     def new_log(self) -> None:
         """The next samples start a new log: keep the calibration, restart the attitude and clock."""
         self.flush()
-        self._clear_pending()
+        self._buf = SampleBuffer()
         self._t_last = None
         self._att_ok = False
-        self._q = None  # a new log may come in another format: its lattice is detected again
+        self._lat.q = None  # a new log may come in another format: its lattice is detected again
         self._rest_det.reset()
 
     def flush(self) -> None:
@@ -288,32 +252,30 @@ class OnlineCalibrator:
     def _start_log(self, final: bool) -> bool:
         """The rate and the value lattice from the log's first samples (a fixed count, so the result does
         not depend on how the log is cut into feed() calls); False while too few samples are in."""
-        t, k = self._pend_t, MIN_SAMPLES_DETECT
-        if t.size < k and not (final and t.size >= 2):
+        buf, k = self._buf, MIN_SAMPLES_DETECT
+        if buf.t.size < k and not (final and buf.t.size >= 2):
             return False
         if self._rate is None:
-            self._rate = float(1.0 / np.median(np.diff(t[:k])))
+            self._rate = float(1.0 / np.median(np.diff(buf.t[:k])))
             self._L = max(1, int(round(self.config.block_s * self._rate)))
-        j = int(np.searchsorted(self._pend_tm, t[min(k, t.size) - 1], side="right"))
-        self._detect_lattice(self._pend_w[:k], self._pend_a[:k], self._pend_m[:j])
+        j = int(np.searchsorted(buf.tm, buf.t[min(k, buf.t.size) - 1], side="right"))
+        self._apply_lattice(self._lat.detect(buf.w[:k], buf.a[:k], buf.m[:j]))
+        self._lat.settle()
         return True
 
     def _process(self, final: bool = False) -> None:
-        if self._q is None and not self._start_log(final):
+        if self._lat.q is None and not self._start_log(final):
             return
-        t, w, a, T = self._pend_t, self._pend_w, self._pend_a, self._pend_T
-        tm, mm = self._pend_tm, self._pend_m
-        bounds = cut_blocks(t, self._L, self.config.max_gap_s, final)
+        buf = self._buf
+        bounds = cut_blocks(buf.t, self._L, self.config.max_gap_s, final)
         if not bounds:
             return
         continues = (self._att_ok and self._t_last is not None
-                     and t[0] - self._t_last <= self.config.max_gap_s)
-        B = block_stats(t, w, a, tm, mm, bounds, self._t_last, self._w_last, bool(continues))
+                     and buf.t[0] - self._t_last <= self.config.max_gap_s)
+        B = block_stats(buf.t, buf.w, buf.a, buf.tm, buf.m, bounds, self._t_last, self._w_last, bool(continues))
         for b in range(len(bounds)):
-            self._block(B, b, t, w, a, T, tm, mm)
-        i, k = bounds[-1][1], int(B.mhi[-1])
-        self._pend_t, self._pend_w, self._pend_a, self._pend_T = t[i:], w[i:], a[i:], T[i:]
-        self._pend_tm, self._pend_m = tm[k:], mm[k:]
+            self._block(B, b, buf.t, buf.w, buf.a, buf.T, buf.tm, buf.m)
+        buf.drop(bounds[-1][1], int(B.mhi[-1]))
 
     def _block(self, B: Blocks, b: int, t: Array, w: Array, a: Array, T: Array, tm: Array, mm: Array) -> None:
         """One filter block: gap check, lattice of a late mag, rail, then attitude start or filter step."""
@@ -324,12 +286,9 @@ class OnlineCalibrator:
             self._gap(float(tb[0] - self._t_last), float(tb[0]))
             t0 = None
         tmb, mb = tm[ml:mh], mm[ml:mh]
-        if self._q is not None and "mag" not in self._q and mb.shape[0]:
-            self._q_mag_buf += mb.tolist()
-            if len(self._q_mag_buf) >= 16:
-                self._q["mag"] = value_lattice(np.asarray(self._q_mag_buf))
-                self._apply_lattice(("mag",))
-                self._q_mag_buf = []
+        if self._lat.late_mag(mb):
+            self._apply_lattice(("mag",))
+            self._lat.settle()
         clip, events = self._rails.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b],
                                          self.config.rail_min, self.config.rail_run)
         for kind, detail in events:
@@ -384,18 +343,12 @@ class OnlineCalibrator:
             hw = field_world(self.x[DIP : DIP + 1])[0]
         s_y = c.att_init_sigma if use_mag else c.yaw_free_sigma
         self.R_nom, P_att = initial_attitude(f, h, hw, c.att_init_sigma, s_y)
-        self.x[ATT] = 0.0
-        self.P[ATT, :] = 0.0
-        self.P[:, ATT] = 0.0
-        self.P[ATT, ATT] = P_att
+        reset_states(self.x, self.P, ATT, 0.0, P_att)
         self._att_ok = True
         self._yaw_free = not use_mag
 
     def _set_dip(self, dip: float) -> None:
-        self.x[DIP] = dip
-        self.P[DIP, :] = 0.0
-        self.P[:, DIP] = 0.0
-        self.P[DIP, DIP] = self.config.dip_sigma**2
+        reset_states(self.x, self.P, DIP, dip, self.config.dip_sigma**2)
         self.dip_known = True
 
     def _mag_collect(self, tm: Array, m: Array) -> None:
@@ -435,10 +388,7 @@ class OnlineCalibrator:
         if fit is None:
             return
         sl = SENSOR_SLICE["mag"]
-        self.x[sl] = fit.x
-        self.P[sl, :] = 0.0
-        self.P[:, sl] = 0.0
-        self.P[sl, sl] = np.diag(fit.sigma**2)
+        reset_states(self.x, self.P, sl, fit.x, np.diag(fit.sigma**2))
         self.prior_sigma[sl] = fit.prior_sigma
         self.prior_x[sl] = self.x[sl]
         self.mag_enabled = True
@@ -449,12 +399,8 @@ class OnlineCalibrator:
     def _align_yaw(self, m: Array) -> None:
         """First mag block after the cold fit: dip from the field's world direction, yaw turned to north."""
         dip, self.R_nom = yaw_to_north(self.R_nom, self._calibrated("mag", m.mean(axis=0)))
-        self.x[DIP] = dip
-        self.P[DIP, :] = 0.0
-        self.P[:, DIP] = 0.0
         self.P = set_yaw_variance(self.P, self.R_nom, self.config.att_init_sigma**2, ATT)
-        self.P[DIP, DIP] = self.config.dip_sigma**2
-        self.dip_known = True
+        self._set_dip(dip)  # (the dip's rows do not enter the attitude block: the order does not matter)
         self._yaw_free = False
         self._align_yaw_next = False
 
@@ -484,14 +430,14 @@ class OnlineCalibrator:
         tl = float(t[-1])
         use_mag, mag_changed = self._mag_block(tm_all[ml:mh], m_all[ml:mh], tl)
         spec = self._spec_noise()
-        q = self._q or {}
+        q = self._lat.q or {}
         for s in SENSORS:
             ev = self._noise.monitor(s, float(B.var3[s][b]), spec[s], q, c.noise_tau_blocks,
                                      c.noise_high, c.noise_low)
             if ev is not None:
                 self._event(ev[0], ev[1], tl)
-        n = self._noise.noise(spec, self._q or {})
-        held, resets, self._hold_new = self._holds.flags(B, b, n, self._q or {}, self._rest_det.prev_means,
+        n = self._noise.noise(spec, q)
+        held, resets, self._hold_new = self._holds.flags(B, b, n, q, self._rest_det.prev_means,
                                                          tuple(self.lay.hold_slice))
         for s in resets:
             self._reset_hold(s)
@@ -537,14 +483,15 @@ class OnlineCalibrator:
         c_mag = None
         if use_mag:
             k0, n_m = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
-            c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], j - i)
+            c_mag = interp_weights(B.m_j[k0 : k0 + n_m], B.m_frac[k0 : k0 + n_m], j - i)  # type: ignore[arg-type]
         Sd = dyn.shape[0]
         o_all, M_all, Minv_all = model_pair(np.concatenate(
             [X[dyn, SENSOR_SLICE["gyro"]], X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
         off = self._offsets("gyro", self._rest_det.still)
         extra = gyro_offsets(X[dyn], off, self._temp_reg(T) if off.temp is not None else None,
                              self._calibrated("accel", a) if off.gsens is not None else None, T.shape[0])
-        pred = propagate_block(X, self.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, dyn,
+        pred = propagate_block(X, self.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag,
+                               dyn,  # type: ignore[arg-type]  # (propagate.py annotates an index array as float)
                                (o_all[:Sd], M_all[:Sd]), extra)
         # sigma point 0 is the mean; the points outside dyn share its attitude history (error stays 0)
         X[dyn, ATT] = rot_log(pred.R_end[0].T @ pred.R_end)
@@ -569,7 +516,7 @@ class OnlineCalibrator:
         c = self.config
         if c.vehicle == "auto" and not self._vehicle.active:
             f_all = np.einsum("sij,sj->si", M, a_mean - o)
-            why = self._vehicle.update(math.nan, self._acc.deviation(f_all, self._Wm, self._Wc, sig_mean), tl)
+            why = self._vehicle.update(math.nan, self._models.acc.deviation(f_all, self._Wm, self._Wc, sig_mean), tl)
             if why:
                 self._event("vehicle", why + ": vehicle acceleration modelled from here on", tl)
         if not self._vehicle.active:
@@ -580,7 +527,7 @@ class OnlineCalibrator:
         """Process noise of the block: :meth:`_process_noise`, plus the trapezoid's error where the rate
         is not smooth (Δt·|Δ²ω|/4 per sample, less the white noise's own E[Δ²n]² = 6σ², so that rest and
         smooth motion add ~0), plus the bilinear allowance (:func:`.noise.bilinear_var`)."""
-        dt_blk = float(t[-1] - self._t_last)  # type: ignore[operator]
+        dt_blk = float(t[-1] - self._t_last)
         q = self._process_noise(dt_blk, n["gyro"])
         L = t.size
         if L >= 2:
@@ -598,26 +545,24 @@ class OnlineCalibrator:
         except np.linalg.LinAlgError:
             self._diverged("covariance is not positive definite", tl)
             return
-        pred, (o, M, Minv) = self._propagate(B, b, X, a, T, use_mag)
+        pred, sens = self._propagate(B, b, X, a, T, use_mag)
         x_pred, Y, P_pred = predict_moments(X, self._Wm, self._Wc, self._block_q(B, b, t, n))
         self.R_nom = pred.R_end[0]
         T_reg = float(np.mean(self._temp_reg(T))) if self._has_temp() else 0.0
-        S, L = X.shape[0], t.size
-        meas = []
         rate = float(np.linalg.norm(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr)))
-        var_a, _ = self._acc.variance(M[:S], o[:S], B.a_mean[b], self._Wm, self._Wc, n["accel"] / math.sqrt(L), rate)
+        n_m = int(B.mhi[b] - B.mlo[b])
+        S = X.shape[0]
+        o, M = sens[0][:S], sens[1][:S]
         dt_blk = float(t[-1] - self._t_last)
-        var_a += self._vehicle_accel(M[:S], o[:S], B.a_mean[b], n["accel"] / math.sqrt(L), dt_blk, tl)
+        var_v = self._vehicle_accel(M, o, B.a_mean[b], n["accel"] / math.sqrt(t.size), dt_blk, tl)
         self._coverage.add_motion(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr), dt_blk, self._vehicle.active)
         if use_mag:
             self._coverage.add_field(self._calibrated("mag", B.m_mean[b]))
-        if not clip["accel"]:
-            Za = self._acc.h(X, pred.f_body, self._offsets("accel", held["accel"]), T_reg, (o[:S], Minv[:S]))
-            meas.append(Measurement("accel", B.a_mean[b], Za, np.full(3, var_a)))
-        if use_mag and pred.h_body is not None:
-            Zm = self._mag.h(X, pred.h_body, self._offsets("mag", held["mag"]), (o[S:], Minv[S:]))
-            n_m = int(B.mhi[b] - B.mlo[b])
-            meas.append(Measurement("mag", B.m_mean[b], Zm, np.full(3, n["mag"] ** 2 / n_m)))
+        meas = motion_measurements(
+            self._models, X, pred.f_body, pred.h_body, sens, None if clip["accel"] else B.a_mean[b],
+            B.m_mean[b] if use_mag else None, n["accel"] / math.sqrt(t.size), n["mag"] ** 2 / max(n_m, 1),
+            (self._Wm, self._Wc), rate, (self._offsets("accel", held["accel"]), self._offsets("mag", held["mag"])),
+            T_reg, var_v)
         if not meas:
             self._commit(x_pred, P_pred, tl)
             return
@@ -642,7 +587,8 @@ class OnlineCalibrator:
             acc = self._rest_acc = RestAccumulator.start(self.x, self.P, self.R_nom, held, use_mag)
         dt_blk = float(t[-1] - self._t_last)
         acc.q += self._process_noise(dt_blk, n["gyro"])
-        self._rest_nis(acc, B, b, n, not clip["accel"], use_mag, tl)
+        for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
+            self._nis_record(s, nis, tl)
         acc.add(B, b, n, not clip["accel"], use_mag, self._temp_reg(T) if self._has_temp() else None)
         if acc.na:
             self._coverage.add_rest(self._calibrated("accel", acc.sa / acc.na), dt_blk)
@@ -654,45 +600,13 @@ class OnlineCalibrator:
             self._rest_acc = None
             self._diverged("covariance is not positive definite", tl)
             return
-        res = self._update(X - x0, x0, P0, self._rest_meas(acc, X, held), True, tl, record=first, post=True)
+        sens = model_pair(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
+        off = (self._offsets("accel", held["accel"]), self._offsets("mag", held["mag"]), self._offsets("gyro", True))
+        meas = rest_measurements(self._models, X, self.R_nom, sens, acc, (self._Wm, self._Wc), off,
+                                 float(np.mean(self.x[index("gyro", "scale")])))
+        res = self._update(X - x0, x0, P0, meas, True, tl, record=first, post=True)
         acc.post = res.post
         self._commit(res.x, res.P, tl)  # a divergence there also ends the running rest (_reset_calibration)
-
-    def _rest_nis(self, acc: RestAccumulator, B: Blocks, b: int, n: dict[str, float], use_acc: bool,
-                  use_mag: bool, tl: float) -> None:
-        """This block's innovation against what the rest so far predicts: the sequential NIS (what a
-        per-block filter would record), so that the windows fill and judge as before."""
-        L, n_m = int(B.hi[b] - B.lo[b]), int(B.mhi[b] - B.mlo[b])
-        for s, mean, ok, cnt in (("accel", B.a_mean[b], use_acc, L), ("mag", B.m_mean[b], use_mag, n_m)):
-            post = acc.post.get(s)
-            if post is not None and ok and cnt:
-                nu = mean - post[0]
-                try:
-                    self._nis_record(s, float(nu @ np.linalg.solve(post[1] + np.eye(3) * n[s] ** 2 / cnt, nu)), tl)
-                except np.linalg.LinAlgError:
-                    pass
-
-    def _rest_meas(self, acc: RestAccumulator, X: Array, held: dict[str, bool]) -> list[Measurement]:
-        """The rest's measurements for the sigma points X at the held attitude: mean accel, mean mag,
-        the gyro's zero rate (:mod:`.measurements`, the same models as in motion)."""
-        S = X.shape[0]
-        R_s = self.R_nom @ rodrigues_n(X[:, ATT])  # (S, 3, 3) attitude of every sigma point
-        o, M, Minv = model_pair(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
-        T_reg = acc.T_reg
-        meas, f_cal = [], None
-        if acc.na:
-            a_mean = acc.sa / acc.na
-            var_a, f_all = self._acc.variance(M[:S], o[:S], a_mean, self._Wm, self._Wc, 1.0 / math.sqrt(acc.na))
-            f_cal = f_all[0]
-            Za = self._acc.h(X, gravity_body(R_s), self._offsets("accel", held["accel"]), T_reg, (o[:S], Minv[:S]))
-            meas.append(Measurement("accel", a_mean, Za, np.full(3, var_a)))
-        if acc.nm:
-            Zm = self._mag.h(X, field_body(R_s, X[:, DIP]), self._offsets("mag", held["mag"]), (o[S:], Minv[S:]))
-            meas.append(Measurement("mag", acc.sm / acc.nm, Zm, np.full(3, 1.0 / acc.nm)))
-        s_gyr = float(np.mean(self.x[index("gyro", "scale")]))
-        Zg = self._zr.h(X, self._offsets("gyro", True), T_reg, f_cal)
-        meas.append(Measurement("rest", acc.sw / acc.nw, Zg, np.full(3, self._zr.variance(acc.nw, s_gyr))))
-        return meas
 
     def _end_rest(self) -> None:
         """Close the running rest (:meth:`_rest_step`): its last state stays."""
@@ -761,10 +675,7 @@ class OnlineCalibrator:
         self._event("divergence", why + "; magnetometer re-initialised", t)
         x0, sig0 = self._prior()
         sl = np.r_[np.arange(SENSOR_SLICE["mag"].start, SENSOR_SLICE["mag"].stop), DIP]
-        self.x[sl] = x0[sl]
-        self.P[sl, :] = 0.0
-        self.P[:, sl] = 0.0
-        self.P[sl, sl] = sig0[sl] ** 2
+        reset_states(self.x, self.P, sl, x0[sl], np.diag(sig0[sl] ** 2))
         self.prior_sigma[sl], self.prior_x[sl] = sig0[sl], x0[sl]
         self.mag_enabled = self.init is not None and self.init.mag is not None
         self.dip_known = False
@@ -791,9 +702,9 @@ class OnlineCalibrator:
         """The current estimate as a Calibration (source "online") with 1σ for bias, scale, alpha, xi, and
         the model extensions (``extensions``, the contract's effect keys) with their σ."""
         meta = {"mag_used": bool(self.mag_enabled), "imu_samples": self._n_imu, "blocks": self._n_blocks,
-                "quantisation": dict(self._q or {}), "events": list(self.events), "nis": self.nis_summary(),
+                "quantisation": dict(self._lat.q or {}), "events": list(self.events), "nis": self.nis_summary(),
                 "observability": self.observability_report()}
-        return calibration_of(self.x, self.sigma(), self.lay, meta, self.extensions())
+        return calibration_of(self.x, self.sigma(), self.lay, meta, self.extensions(), self.init)
 
     def extensions(self) -> dict[str, Any]:
         """Estimated model extensions in the effect vocabulary (:func:`.outputs.extensions_of`)."""
@@ -849,5 +760,5 @@ class OnlineCalibrator:
 
 
 # kept importable from here (tests, benchmarks and diagnose import them from onlinecal.ukf.filter)
-__all__ = ["AXES", "EXTENSIONS", "OnlineCalibrator", "UKFConfig", "ellipsoid_gn", "hold_sigma",
+__all__ = ["AXES", "EXTENSIONS", "OnlineCalibrator", "UKFConfig", "hold_sigma",
            "third_diff_var", "value_lattice"]

@@ -25,7 +25,10 @@ def align_gauge(cal: Calibration, sensor: str = "accel", alpha: ArrayLike = (0.0
     are unchanged (the rotation acts on the calibrated side). Sigma is dropped.
     """
     target = np.asarray(alpha, float)
-    M_ref = cal.sensor(sensor).matrix
+    ref = cal.sensor(sensor)
+    if ref is None:
+        raise ValueError(f"align_gauge: the calibration has no {sensor}")
+    M_ref = ref.matrix
 
     def resid(q: np.ndarray) -> np.ndarray:
         return decompose(rodrigues(q[None])[0] @ M_ref)[1] - target

@@ -26,8 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..model import PARAMS, SENSORS
-from ..sim.motion import euler_to_R
+from ..model import PARAMS, SENSORS, model_matrices
 from .geometry import prefix_products, prefix_products_cm, rodrigues, rodrigues_cm, rot_log, skew
 
 Array = NDArray[np.float64]
@@ -58,60 +57,22 @@ def state_names() -> list[str]:
 NAMES = state_names()
 
 
-def _axes_and_inverse(xi: Array) -> tuple[Array, Array]:
-    """Eq. 6 vectorised: A (rows = unit sensing axes) and T_N = A⁻¹ for xi (S, 3); both (S, 3, 3).
-
-    A = [[1, 0, 0], [b, c, 0], [d, e, f]] with b = sin ξz, c = cos ξz, d = −sin ξy, e = sin ξx cos ξy,
-    f = cos ξx cos ξy; its inverse is written out (lower triangular), no batched ``inv`` needed.
-    """
-    S = xi.shape[0]
-    sx, sy, sz = np.sin(xi).T
-    cx, cy, cz = np.cos(xi).T
-    b, c, d, e, f = sz, cz, -sy, sx * cy, cx * cy
-    A = np.zeros((S, 3, 3))
-    A[:, 0, 0] = 1.0
-    A[:, 1, 0], A[:, 1, 1] = b, c
-    A[:, 2, 0], A[:, 2, 1], A[:, 2, 2] = d, e, f
-    Ai = np.zeros((S, 3, 3))
-    Ai[:, 0, 0] = 1.0
-    Ai[:, 1, 0], Ai[:, 1, 1] = -b / c, 1.0 / c
-    Ai[:, 2, 0], Ai[:, 2, 1], Ai[:, 2, 2] = (b * e - c * d) / (c * f), -e / (c * f), 1.0 / f
-    return A, Ai
+def model_pair(p: Array) -> tuple[Array, Array, Array]:
+    """(o, M, M⁻¹) of the sensor terms p (S, 12) for every sigma point: :func:`onlinecal.model.model_matrices`
+    (eqs. 1–6; the model has one owner, which broadcasts over leading axes)."""
+    return model_matrices(p)
 
 
 def correction(p: Array) -> tuple[Array, Array]:
-    """Calibration map of one sensor for every sigma point (eq. 1 with eqs. 2–6, exact forms).
-
-    ``p`` (S, 12) = (o, s, alpha, xi). Returns (o (S, 3), M (S, 3, 3)) with
-    ``calibrated = M (raw − o)``, ``M = S · T_R(alpha) · T_N(xi)``.
-    """
-    o, s, a, xi = p[:, 0:3], p[:, 3:6], p[:, 6:9], p[:, 9:12]
-    TR = euler_to_R(a)  # Rz(a_z) Ry(a_y) Rx(a_x), eqs. 3–4
-    _, TN = _axes_and_inverse(xi)
-    return o, s[:, :, None] * (TR @ TN)
-
-
-def model_pair(p: Array) -> tuple[Array, Array, Array]:
-    """:func:`correction` and :func:`sensor_model` at once (one T_R, one axes matrix): (o, M, M⁻¹).
-
-    ``p`` (S, 12); o (S, 3), M = S·T_R·T_N and M⁻¹ = A·T_Rᵀ·diag(1/s), both (S, 3, 3) (eqs. 1–6).
-    """
-    o, s, a, xi = p[:, 0:3], p[:, 3:6], p[:, 6:9], p[:, 9:12]
-    TR = euler_to_R(a)
-    A, TN = _axes_and_inverse(xi)
-    return o, s[:, :, None] * (TR @ TN), (A @ TR.transpose(0, 2, 1)) / s[:, None, :]
+    """(o (S, 3), M (S, 3, 3)) with ``calibrated = M (raw − o)`` for p (S, 12) (eq. 1)."""
+    o, M, _ = model_matrices(p)
+    return o, M
 
 
 def sensor_model(p: Array) -> tuple[Array, Array]:
-    """Inverse of :func:`correction`, the sensor model itself: ``raw = M⁻¹ c + o``.
-
-    ``p`` (S, 12). Returns (o (S, 3), M⁻¹ (S, 3, 3)) with ``M⁻¹ = T_N⁻¹ T_Rᵀ S⁻¹ = A · T_Rᵀ · diag(1/s)``
-    (eq. 6: T_N⁻¹ = A, the axes matrix), exact, with no matrix inversion.
-    """
-    o, s, a, xi = p[:, 0:3], p[:, 3:6], p[:, 6:9], p[:, 9:12]
-    TR = euler_to_R(a)
-    A, _ = _axes_and_inverse(xi)
-    return o, (A @ TR.transpose(0, 2, 1)) / s[:, None, :]
+    """(o (S, 3), M⁻¹ (S, 3, 3)) with ``raw = M⁻¹ c + o`` for p (S, 12) (eq. 1 inverted, no inversion)."""
+    o, _, Minv = model_matrices(p)
+    return o, Minv
 
 
 def field_world(dip: Array) -> Array:

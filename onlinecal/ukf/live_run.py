@@ -335,7 +335,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
         res_cal = cal.result()
         stats = link_stats()
         stats["stop_reason"] = "interrupted" if stopped else src.stats["stop_reason"]
-        res_cal.meta.setdefault("online", {})["link"] = {k: stats[k] for k in (*_COUNTERS, "resumes")}
+        res_cal = res_cal.replace(meta={**res_cal.meta, "online": {**res_cal.meta.get("online", {}), "link": {k: stats[k] for k in (*_COUNTERS, "resumes")}}})  # noqa: E501 (calibrations are immutable)
         if json_out is not None:
             write_atomic(json_out, res_cal.to_json() + "\n")
         save_checkpoint()

@@ -21,7 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .layout import SENSOR_SLICE, index, sensor_model
+from .geometry import rodrigues_n
+from .layout import ATT, DIP, SENSOR_SLICE, index, sensor_model
+from .rest import RestAccumulator
+from .unscented import Measurement
 
 Array = NDArray[np.float64]
 
@@ -165,3 +168,63 @@ def gyro_offsets(Xd: Array, off: Offsets, temp_reg: Array | None, f: Array | Non
         b += Xd[:, off.gsens][:, None, :] * f[None]
     out: Array = np.concatenate([b[:, :1], b], axis=1)
     return out
+
+
+@dataclass(frozen=True)
+class Models:
+    """The filter's three measurement models (built once from the config)."""
+
+    acc: AccelModel
+    mag: MagModel
+    zr: ZeroRateModel
+
+
+def motion_measurements(mod: Models, X: Array, f_body: Array, h_body: Array | None,
+                        sens: tuple[Array, Array, Array], z_acc: Array | None, z_mag: Array | None,
+                        sig_acc: float, var_mag: float, W: tuple[Array, Array], rate: float,
+                        off: tuple[Offsets, Offsets], T_reg: float, var_vehicle: float = 0.0) -> list[Measurement]:
+    """A motion block's measurements for the propagated sigma points X (S, n): the block-mean accel z_acc
+    (None: clipped) against g·f_body, the block-mean mag z_mag (None: not used) against h_body (both
+    block means of the propagation, (S, 3)). ``sens`` (o, M, M⁻¹) of accel then mag for every point
+    ((2S, 3), (2S, 3, 3) ×2); ``sig_acc`` σ of the accel mean (noise only), ``var_mag`` the mag mean's
+    variance; W = (Wm, Wc); rate rad/s the block's mean turn rate (lever-arm term); ``off`` the accel's
+    and mag's offsets; T_reg the temperature regressor (°C); ``var_vehicle`` (m/s²)² the unknown vehicle
+    acceleration's share of the accel variance (:func:`.vehicle.vehicle_accel_var`, 0 off a vehicle)."""
+    S = X.shape[0]
+    o, M, Minv = sens
+    meas = []
+    if z_acc is not None:
+        var_a, _ = mod.acc.variance(M[:S], o[:S], z_acc, W[0], W[1], sig_acc, rate)
+        var_a += var_vehicle
+        Za = mod.acc.h(X, f_body, off[0], T_reg, (o[:S], Minv[:S]))
+        meas.append(Measurement("accel", z_acc, Za, np.full(3, var_a)))
+    if z_mag is not None and h_body is not None:
+        Zm = mod.mag.h(X, h_body, off[1], (o[S:], Minv[S:]))
+        meas.append(Measurement("mag", z_mag, Zm, np.full(3, var_mag)))
+    return meas
+
+
+def rest_measurements(mod: Models, X: Array, R_nom: Array, sens: tuple[Array, Array, Array],
+                      acc: RestAccumulator, W: tuple[Array, Array], off: tuple[Offsets, Offsets, Offsets],
+                      s_gyr: float) -> list[Measurement]:
+    """A rest's measurements for the sigma points X (S, n) at the held attitude R_nom · exp([δθ]ₓ): the
+    running means of accel and mag (:class:`.rest.RestAccumulator`, where it has them) and the gyro's
+    zero rate. ``sens`` (o, M, M⁻¹) of accel then mag for every point; ``off`` the accel's, mag's and
+    gyro's offsets; ``s_gyr`` the mean gyro scale."""
+    S = X.shape[0]
+    R_s = R_nom @ rodrigues_n(X[:, ATT])  # (S, 3, 3) attitude of every sigma point
+    o, M, Minv = sens
+    T_reg = acc.T_reg
+    meas, f_cal = [], None
+    if acc.na:
+        a_mean = acc.sa / acc.na
+        var_a, f_all = mod.acc.variance(M[:S], o[:S], a_mean, W[0], W[1], 1.0 / math.sqrt(acc.na))
+        f_cal = f_all[0]
+        Za = mod.acc.h(X, gravity_body(R_s), off[0], T_reg, (o[:S], Minv[:S]))
+        meas.append(Measurement("accel", a_mean, Za, np.full(3, var_a)))
+    if acc.nm:
+        Zm = mod.mag.h(X, field_body(R_s, X[:, DIP]), off[1], (o[S:], Minv[S:]))
+        meas.append(Measurement("mag", acc.sm / acc.nm, Zm, np.full(3, 1.0 / acc.nm)))
+    Zg = mod.zr.h(X, off[2], T_reg, f_cal)
+    meas.append(Measurement("rest", acc.sw / acc.nw, Zg, np.full(3, mod.zr.variance(acc.nw, s_gyr))))
+    return meas

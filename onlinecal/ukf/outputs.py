@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..model import PARAMS, SENSORS, Calibration, SensorCalibration
+from ..model import PARAMS, RAW_UNITS, SENSORS, Calibration, SensorCalibration
 from .config import EXTENSIONS
 from .layout import AXES, DIP, index
 from .state import StateLayout
@@ -20,10 +20,12 @@ Array = NDArray[np.float64]
 
 
 def calibration_of(x: Array, sig: Array, lay: StateLayout, meta_online: dict[str, Any],
-                   extensions: dict[str, Any]) -> Calibration:
+                   extensions: dict[str, Any], init: Calibration | None) -> Calibration:
     """The estimate x (n,) with 1σ ``sig`` (n,) as a Calibration (source "online"): bias, scale, alpha, xi
     per sensor; alphas relative to the gauge sensor's carry its σ (in B). ``meta_online`` goes to
-    ``meta.online`` with the dip, the gauge and the extensions' σ and units added."""
+    ``meta.online`` with the dip, the gauge and the extensions' σ and units added. The ``gauge`` field:
+    the init's "gyro_phases" where the filter holds that gyro's terms (it keeps the batch's B), else the
+    held sensor; the raw units are the init's."""
     sens = {}
     g = lay.gauge
     for s in SENSORS:
@@ -45,8 +47,12 @@ def calibration_of(x: Array, sig: Array, lay: StateLayout, meta_online: dict[str
         "events": meta_online["events"], "nis": meta_online["nis"],
         **({"observability": meta_online["observability"]} if "observability" in meta_online else {}),
     }}
+    gauge = g
+    if g == "gyro" and init is not None and init.gauge == "gyro_phases" and "xi" in lay.gauge_terms:
+        gauge = "gyro_phases"
+    units = init.raw_units if init is not None else RAW_UNITS
     return Calibration(gyro=sens["gyro"], accel=sens["accel"], mag=sens["mag"], source="online",
-                       meta=meta, extensions=extensions)
+                       meta=meta, extensions=extensions, gauge=gauge, raw_units=units)  # type: ignore[arg-type]
 
 
 def extensions_of(x: Array, lay: StateLayout, T0: float | None) -> dict[str, Any]:

@@ -87,6 +87,23 @@ class RestAccumulator:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RestAccumulator:
-        kw = {k: (np.asarray(v, float) if k in _ARRAYS else v) for k, v in d.items() if k != "post"}
+        a = {k: np.asarray(d[k], float) for k in _ARRAYS}
         post = {k: (np.asarray(v[0], float), np.asarray(v[1], float)) for k, v in d["post"].items()}
-        return cls(**kw, post=post)
+        return cls(a["x"], a["P"], a["R_nom"], dict(d["held"]), bool(d["use_mag"]), a["q"], a["sa"], float(d["na"]),
+                   a["sm"], float(d["nm"]), a["sw"], float(d["nw"]), float(d["sT"]), int(d["nT"]), post)
+
+    def sequential_nis(self, B: Blocks, b: int, n: dict[str, float], use_acc: bool,
+                       use_mag: bool) -> list[tuple[str, float]]:
+        """Block ``b``'s innovation against what the rest so far predicts (``post``): the NIS a per-block
+        filter would record, per sensor (so that the NIS windows fill and judge as in motion)."""
+        L, n_m = int(B.hi[b] - B.lo[b]), int(B.mhi[b] - B.mlo[b])
+        out = []
+        for s, mean, ok, cnt in (("accel", B.a_mean[b], use_acc, L), ("mag", B.m_mean[b], use_mag, n_m)):
+            post = self.post.get(s)
+            if post is not None and ok and cnt:
+                nu = mean - post[0]
+                try:
+                    out.append((s, float(nu @ np.linalg.solve(post[1] + np.eye(3) * n[s] ** 2 / cnt, nu))))
+                except np.linalg.LinAlgError:
+                    pass
+        return out

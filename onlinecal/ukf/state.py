@@ -90,14 +90,9 @@ class StateLayout:
 
 
 def batch_gyro_from_phases(init: Calibration | None) -> bool:
-    """Whether ``init`` is a batch result whose gyro came from its rotation phases."""
-    if init is None:
-        return False
-    try:
-        m = init.meta["batch"]["steps"]["gyro"]["figures"]["method"]
-    except (AttributeError, KeyError, TypeError):
-        return False
-    return isinstance(m, str) and m.startswith("phases") and init.gyro is not None
+    """Whether ``init``'s B is the platform's rotation axes as its gyro measured them (``gauge`` field
+    "gyro_phases", set by the batch's phase method), with a gyro to hold."""
+    return init is not None and init.gauge == "gyro_phases" and init.gyro is not None
 
 
 def choose_gauge(init: Calibration | None, config: UKFConfig) -> tuple[str | None, tuple[str, ...]]:
@@ -186,3 +181,16 @@ def prior(init: Calibration | None, config: UKFConfig, gauge: str | None,
     x[DIP] = math.radians(60.0)
     sig[DIP] = math.radians(30.0)
     return x, sig
+
+
+def reset_states(x: Array, P: Array, idx: slice | int | NDArray[np.intp], value: Array | float,
+                 cov: Array | float) -> None:
+    """Restart the states ``idx`` of (x (n,), P (n, n)) in place: value ``value``, covariance ``cov`` (a
+    matrix for a slice or index array, a variance for one index), uncorrelated with the rest."""
+    x[idx] = value
+    P[idx, :] = 0.0
+    P[:, idx] = 0.0
+    if isinstance(idx, np.ndarray):
+        P[np.ix_(idx, idx)] = cov
+    else:
+        P[idx, idx] = cov

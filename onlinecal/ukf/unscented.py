@@ -109,8 +109,9 @@ def update(Y: Array, x_pred: Array, P_pred: Array, meas: list[Measurement], Wm: 
     Y (2n + 1, n) the sigma points less the predicted mean x_pred (n,), P_pred (n, n). Per gated sensor
     its NIS ν S⁻¹ ν against ``gating``; consider states (``consider`` (n,) bool) get zero gain; the
     covariance update P − K Pzxᵀ − Pzx Kᵀ + K S Kᵀ is the error covariance for any gain. ``damp`` > 0:
-    the gain is computed as if R were at least damp × HPHᵀ (a partial update: one update removes at most
-    1/(1 + damp) of the prior's variance along a measurement), while the gating and P use the model's S.
+    the gain is computed as if R were at least damp × HPHᵀ (a partial update: the mean moves at most
+    1/(1 + damp) of the way), while the gating and P use the model's S (P keeps at least
+    damp²/(1 + damp)² of the prior's variance along a measurement).
     ``want_post``: per gated sensor z + (S − R) S⁻¹ ν and (S − R) − (S − R) S⁻¹ (S − R) (linearised).
     """
     names = [m.name for m in meas]

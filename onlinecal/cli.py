@@ -151,7 +151,7 @@ def _mag_raw(logs: Sequence[Any]) -> Any:
 
 def cmd_simulate(a: argparse.Namespace) -> int:
     from .io import write_log
-    from .sim import simulate
+    from .sim import ProfileError, simulate
     from .sim.effects import EffectError, check_combination, parse_effect
 
     out = Path(a.out)
@@ -165,6 +165,8 @@ def cmd_simulate(a: argparse.Namespace) -> int:
         sim = simulate(a.profile, a.seed, a.duration, a.rate, a.mag_rate, effects=effects)
     except EffectError as e:  # the message names the spec and what is wrong with it
         raise UsageError(f"--effect: {e}") from e
+    except ProfileError as e:
+        raise UsageError(f"--profile: {e}") from e
     if sim.data.n_imu == 0:
         raise UsageError(f"--duration {a.duration:g} at --rate {a.rate:g} Hz gives no IMU sample")
     try:
@@ -175,6 +177,17 @@ def cmd_simulate(a: argparse.Namespace) -> int:
     print(f"wrote {out} ({sim.data.n_imu} IMU, {sim.data.n_mag} mag samples, {sim.data.duration:.1f} s) "
           f"and {out}.truth.json")
     return 0
+
+
+def _print_observability(cal: Any, out: Any = None) -> None:
+    """What the data determined and what not, in words (meta.online.observability, issue 10), to ``out``
+    (stdout by default; stderr when the JSON goes to stdout)."""
+    from .ukf.vehicle import observability_text
+
+    rep = (cal.meta or {}).get("online", {}).get("observability")
+    if rep:
+        for line in observability_text(rep):
+            print(line, file=out or sys.stdout)
 
 
 def _report_dir(path: str) -> Path:
@@ -315,6 +328,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
     health = online_health(res, logs)
     print(truth_table(None, init, res.calibration, labels=("init" if batch is None else "batch", "online")),
           file=_human(a.json))
+    _print_observability(res.calibration, _human(a.json))
     _wrote(res.calibration, health, a.json, report, written)
     return _show_health(health, "online calibration")
 
@@ -424,6 +438,7 @@ def cmd_run(a: argparse.Namespace) -> int:
     print(f"link: received {ln['received']}, lost {ln['lost']}, duplicates {ln['duplicates']}, "
           f"reordered {ln['reordered']}, late {ln['dropped_late']}, reconnects {ln['reconnects']}, "
           f"resumes {ln['resumes']}; ended: {res.stop_reason}", file=out)
+    _print_observability(res.calibration, out)
     if res.missing_motion:
         print("still needed: " + "; ".join(res.missing_motion), file=out)
     if a.json and a.json != "-":
@@ -697,7 +712,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("simulate", "write a simulated session (.tlog/.csv/.bin) and its truth (FILE.truth.json)")
     p.add_argument("--out", required=True, metavar="FILE", help="FILE.tlog, FILE.csv or FILE.bin")
-    p.add_argument("--profile", choices=["paper", "flight"], default="paper")
+    p.add_argument("--profile", default="paper",
+                   help="paper | flight | multirotor | fixedwing, vehicles with options "
+                        "NAME[:vibration=M/S2,mag_interference=F,rest=S]")
     p.add_argument("--seed", type=_SEED, default=0)
     p.add_argument("--duration", type=_POS, default=None, metavar="S", help="seconds (default: the profile's)")
     p.add_argument("--rate", type=_POS, default=100.0, metavar="HZ", help="IMU rate, Hz (default 100)")

@@ -25,6 +25,7 @@ from onlinecal.model import Calibration
 from onlinecal.report import param_rows
 from onlinecal.sim import Truth
 from onlinecal.ukf import replay
+from onlinecal.ukf.gauge import align_gauge
 
 HERE = Path(__file__).resolve().parent
 CORPUS = HERE / "corpus"
@@ -94,6 +95,13 @@ def build(path: Path) -> SessionTable:
     ev = [e["kind"] for e in res.events]
     if ev:
         notes.append("online events: " + ", ".join(sorted(set(ev))))
+    g = (meta.get("gauge") or {}).get("sensor")
+    if init is None and g and online.sensor(g) is not None:
+        # cold: B is the gauge sensor's own frame (its alpha held at 0 by definition), so the truth is
+        # compared in that frame (one common rotation of all sensors, which no data can see)
+        truth = align_gauge(truth, g, online.sensor(g).alpha)
+        notes.append(f"cold start: truth expressed in the filter's body frame (the {g}'s frame, its alpha "
+                     "held at 0 by definition)")
     rows = []
     for r in param_rows({"truth": truth, "batch": batch, "online": online}):
         on, sig = r["online"], r["online_sigma"]

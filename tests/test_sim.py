@@ -53,3 +53,81 @@ def test_truth_round_trip(tmp_path):
 def test_seeds_change_the_truth():
     a, b = simulate("paper", 1).truth.calibration, simulate("paper", 2).truth.calibration
     assert not np.allclose(a.gyro.bias, b.gyro.bias)
+
+
+# -- flight profiles from vehicle physics (issue 10) -------------------------------------------------
+
+def test_vehicle_profiles_physics():
+    """Multirotor: specific force near body z (thrust) with linear accelerations up to ~3 m/s²; fixed-wing:
+    coordinated turns (no body-y specific force) with the centripetal acceleration of the bank; both
+    start with a disarmed rest of ≥ 30 s where the rate is exactly zero and |f| = g."""
+    from onlinecal.sim.flight import fixedwing_trajectory, multirotor_trajectory
+
+    for fn in (multirotor_trajectory, fixedwing_trajectory):
+        tr = fn(np.random.default_rng(7), 300.0)
+        t = np.arange(0, tr.duration, 0.005)
+        m = tr.evaluate(t)
+        rest = t < 30.0
+        assert np.abs(m.omega[rest]).max() == 0.0
+        assert np.abs(np.linalg.norm(m.f[rest], axis=1) - G0).max() < 1e-9
+        fl = t > 60.0
+        a = np.linalg.norm(m.a_world[fl], axis=1)
+        assert a.max() > 1.5  # real linear accelerations
+        # the specific force is the kinematics: f = Rᵀ (a + g ẑ)
+        f = np.einsum("nji,nj->ni", m.R, m.a_world + np.array([0, 0, G0]))
+        assert np.abs(f - m.f).max() < 1e-9
+        yaw = np.unwrap(m.euler[:, 2])
+        assert np.ptp(yaw) > np.pi  # yaw turns
+        if tr.kind == "multirotor":
+            assert a.max() < 3.6
+            # thrust along body z: x/y specific force is rotor drag (≤ k·v) and attitude lag only
+            tilt_dir = np.abs(m.f[fl, :2]).max()
+            assert tilt_dir < 0.35 * np.abs(m.f[fl, 2]).min()
+        else:
+            # coordinated flight: the specific force stays in the body x–z plane
+            assert np.abs(m.f[fl, 1]).max() < 0.3
+            assert np.degrees(np.arccos(np.clip(m.R[fl, 2, 2], -1, 1))).max() > 15  # banked turns
+
+
+def test_vehicle_rate_matches_attitude():
+    from onlinecal.sim.flight import multirotor_trajectory
+
+    tr = multirotor_trajectory(np.random.default_rng(3), 200.0)
+    t = np.random.default_rng(0).uniform(0, tr.duration - 0.01, 3000)
+    h = 1e-6
+    m0, m1 = tr.evaluate(t), tr.evaluate(t + h)
+    W = np.einsum("nji,njk->nik", m0.R, (m1.R - m0.R) / h)
+    w = np.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], 1)
+    assert np.abs(w - m0.omega).max() < 1e-4
+
+
+def test_vehicle_vibration_and_interference(tmp_path):
+    """Healthy vibration: a few m/s² RMS while armed, none before arming; mag interference ∝ throttle."""
+    sim = simulate("multirotor", 2, duration=120.0, imu_rate=200.0, noise=0.0)
+    sim2 = simulate("multirotor:vibration=0,mag_interference=0.2", 2, duration=120.0, imu_rate=200.0, noise=0.0)
+    v = sim.truth.vehicle
+    assert v["kind"] == "multirotor" and v["armed_at"] >= 30.0
+    cal = sim.truth.calibration
+    d, d2 = sim.data, sim2.data
+    vib = cal.accel.apply(d.acc) - cal.accel.apply(d2.acc)
+    pre = d.t_imu < v["armed_at"] - 0.01
+    assert np.abs(vib[pre]).max() < 1e-9
+    rms = vib[d.t_imu > 60].std(0)
+    assert 1.0 < rms.min() and rms.max() < 10.0  # healthy: below ArduPilot's 15-30 m/s² concern levels
+    # interference: the calibrated field's norm departs from 1 only in flight
+    h0 = np.linalg.norm(cal.mag.apply(sim.data.mag), axis=1)
+    h1 = np.linalg.norm(cal.mag.apply(sim2.data.mag), axis=1)
+    assert np.abs(h1 - h0)[d2.t_mag < 30].max() < 1e-9
+    assert np.abs(h1 - h0)[d2.t_mag > 60].max() > 0.02
+
+
+def test_profile_spec_errors():
+    import pytest
+
+    from onlinecal.sim import ProfileError, parse_profile
+
+    assert parse_profile("fixedwing:vibration=3") == ("fixedwing", {"vibration": 3.0})
+    for bad in ("heli", "multirotor:vib=3", "multirotor:vibration=x", "paper:vibration=1",
+                "multirotor:rest=10", "multirotor:vibration=-1"):
+        with pytest.raises(ProfileError):
+            parse_profile(bad)

@@ -1,5 +1,6 @@
-"""Simulator: the paper's 3-D rotation platform session and a flight profile, with truth."""
+"""Simulator: the paper's 3-D rotation platform session and flight profiles (a generic flight, a
+multirotor and a fixed-wing from vehicle physics), with truth."""
 
-from .sensors import Simulation, Truth, paper_truth, simulate
+from .sensors import PROFILES, ProfileError, Simulation, Truth, paper_truth, parse_profile, simulate
 
-__all__ = ["Simulation", "Truth", "paper_truth", "simulate"]
+__all__ = ["PROFILES", "ProfileError", "Simulation", "Truth", "paper_truth", "parse_profile", "simulate"]

@@ -23,6 +23,14 @@ from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
 from ..specs import ACCEL_SPEC, FIELD_DIP_DEG, FIELD_GAUSS, GYRO_SPEC, MAG_SPEC, SensorSpec  # noqa: F401 (re-export)
 from .effects import order_effects
+from .flight import (
+    VIBE_HEALTHY,
+    VehicleTrajectory,
+    fixedwing_trajectory,
+    mag_interference,
+    multirotor_trajectory,
+    vibration,
+)
 from .motion import G0, MotionSample, Trajectory, flight_trajectory, paper_trajectory
 
 Array = NDArray[np.float64]
@@ -81,6 +89,7 @@ class Truth:
     noise: dict[str, float] = field(default_factory=dict)
     segments: list[dict] = field(default_factory=list)
     effects: list[dict] = field(default_factory=list)
+    vehicle: dict[str, Any] = field(default_factory=dict)  # flight profiles: vibration, interference, times
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -95,6 +104,7 @@ class Truth:
             "noise": self.noise,
             "segments": self.segments,
             "effects": self.effects,
+            **({"vehicle": self.vehicle} if self.vehicle else {}),
             "calibration": self.calibration.to_dict(),
         }
 
@@ -103,7 +113,7 @@ class Truth:
         if d.get("schema") != TRUTH_SCHEMA:
             raise ValueError(f"not a truth file (schema {d.get('schema')!r})")
         kw = {k: d[k] for k in ("profile", "seed", "imu_rate", "mag_rate", "gravity", "field_world",
-                                 "field_gauss", "noise", "segments", "effects") if k in d}
+                                 "field_gauss", "noise", "segments", "effects", "vehicle") if k in d}
         return cls(calibration=Calibration.from_dict(d["calibration"]), **kw)
 
     def save(self, path: str | Path) -> None:
@@ -142,7 +152,7 @@ class SimContext:
     specs: dict[str, SensorSpec]
     noise_scale: dict[str, float] = field(default_factory=lambda: {"gyro": 1.0, "accel": 1.0, "mag": 1.0})
     seed: int = 0
-    trajectory: Trajectory | None = None
+    trajectory: Trajectory | VehicleTrajectory | None = None
     h_W: Array | None = None  # unit field in the world frame
     motion: dict[str, MotionSample] = field(default_factory=dict)
     inputs: dict[str, Array] = field(default_factory=dict)
@@ -202,19 +212,61 @@ def quantise(x: Array, spec: SensorSpec) -> Array:
     return np.round(y / spec.lsb) * spec.lsb if spec.lsb > 0 else y
 
 
-def make_trajectory(profile: str, rng: np.random.Generator, duration: float | None) -> Trajectory:
+PROFILES = ("paper", "flight", "multirotor", "fixedwing")
+VEHICLES = ("multirotor", "fixedwing")
+# per-axis RMS vibration (m/s²) of a fixed-wing's engine/propeller, about half a multirotor's (one
+# propeller, stiffer airframe); same ArduPilot VIBE scale as :data:`onlinecal.sim.flight.VIBE_HEALTHY`
+VIBE_FIXEDWING = (1.5, 1.5, 2.5)
+
+
+class ProfileError(ValueError):
+    """An unknown profile or profile option (the message names it)."""
+
+
+def parse_profile(spec: str) -> tuple[str, dict[str, float]]:
+    """``NAME[:key=value,...]`` → (name, options). Vehicle options: ``vibration`` (RMS m/s² on body z at
+    hover, x/y 0.6 of it; 0 off), ``mag_interference`` (field units per unit throttle, along body
+    (0.3, −0.2, 0.9)), ``rest`` (s of disarmed ground rest before arming, ≥ 30)."""
+    name, _, rest = spec.partition(":")
+    if name not in PROFILES:
+        raise ProfileError(f"unknown profile {name!r} ({', '.join(PROFILES)})")
+    opts: dict[str, float] = {}
+    if rest:
+        if name not in VEHICLES:
+            raise ProfileError(f"profile {name!r} takes no options ({spec!r})")
+        for kv in rest.split(","):
+            k, eq, v = kv.partition("=")
+            if k not in ("vibration", "mag_interference", "rest") or not eq:
+                raise ProfileError(f"{spec!r}: unknown option {kv!r} (vibration=, mag_interference=, rest=)")
+            try:
+                opts[k] = float(v)
+            except ValueError as e:
+                raise ProfileError(f"{spec!r}: {k} must be a number, not {v!r}") from e
+            if not np.isfinite(opts[k]) or opts[k] < 0:
+                raise ProfileError(f"{spec!r}: {k} must be finite and ≥ 0")
+        if opts.get("rest", 30.0) < 30.0:
+            raise ProfileError(f"{spec!r}: the ground rest must last at least 30 s")
+    return name, opts
+
+
+def make_trajectory(profile: str, rng: np.random.Generator, duration: float | None,
+                    rest_s: float | None = None) -> Trajectory | VehicleTrajectory:
     if profile == "paper":
         return paper_trajectory(rng)
     if profile == "flight":
         return flight_trajectory(rng, duration or 300.0)
-    raise ValueError(f"unknown profile {profile!r} (paper, flight)")
+    if profile == "multirotor":
+        return multirotor_trajectory(rng, duration or 600.0, **({"rest_s": rest_s} if rest_s else {}))
+    if profile == "fixedwing":
+        return fixedwing_trajectory(rng, duration or 600.0, **({"rest_s": rest_s} if rest_s else {}))
+    raise ProfileError(f"unknown profile {profile!r} ({', '.join(PROFILES)})")
 
 
 @dataclass
 class Simulation:
     data: ImuData
     truth: Truth
-    trajectory: Trajectory
+    trajectory: Trajectory | VehicleTrajectory
 
 
 def simulate(
@@ -229,18 +281,41 @@ def simulate(
 ) -> Simulation:
     """Simulate a session. Returns raw data (ImuData), the truth and the trajectory.
 
+    ``profile``: ``paper``, ``flight`` or a vehicle, ``multirotor`` / ``fixedwing`` with options
+    (:func:`parse_profile`: ``multirotor:vibration=30,mag_interference=0.2``); a vehicle's rotor vibration
+    (healthy by default) is added to the accelerometer's specific force while armed, and its interference
+    to the magnetometer's field, both before the sensor model (they are physical inputs).
     ``duration`` cuts the paper profile (or sets the flight length); ``noise`` scales every sensor's
     noise; ``effects`` are objects with ``apply(ctx: SimContext)`` and ``describe() -> dict``
     (``onlinecal.sim.effects.parse_effect`` makes them from ``NAME:key=value`` strings).
     """
+    name, opts = parse_profile(profile)
     rng = np.random.default_rng(seed)
     cal = truth if truth is not None else paper_truth(rng)
-    traj = make_trajectory(profile, rng, duration)
+    # (the rest option only when given: tests replace make_trajectory with a 3-argument stand-in)
+    traj = make_trajectory(name, rng, duration, **({"rest_s": opts["rest"]} if "rest" in opts else {}))
     T = traj.duration if duration is None else min(duration, traj.duration)
     t_imu, t_mag = sample_times(T, imu_rate, mag_rate)
     mi, mm = traj.evaluate(t_imu), traj.evaluate(t_mag)
     h_W = field_world()
     h_B = np.einsum("nji,j->ni", mm.R, h_W)
+    vehicle: dict[str, Any] = {}
+    if isinstance(traj, VehicleTrajectory):
+        base = VIBE_HEALTHY if name == "multirotor" else VIBE_FIXEDWING
+        vib_rms = tuple(float(v) for v in base) if "vibration" not in opts else (
+            0.6 * opts["vibration"], 0.6 * opts["vibration"], opts["vibration"])
+        if max(vib_rms) > 0:
+            vib = vibration(traj, t_imu, vib_rms, seed)  # type: ignore[arg-type]
+            mi = MotionSample(mi.t, mi.R, mi.omega, mi.f + vib, mi.a_world, mi.euler)
+        k_mag = opts.get("mag_interference", 0.0)
+        mag_dir = np.array([0.3, -0.2, 0.9]) / np.linalg.norm([0.3, -0.2, 0.9])
+        if k_mag > 0:
+            h_B = h_B + mag_interference(traj, t_mag, k_mag * mag_dir)
+        armed = traj.armed
+        i_arm = int(np.argmax(armed)) if armed.any() else -1
+        vehicle = {"kind": name, "vibration_rms": list(vib_rms), "mag_interference_per_throttle":
+                   (k_mag * mag_dir).tolist(), "armed_at": traj.dt * i_arm if i_arm >= 0 else None,
+                   "takeoff_at": next((s["t0"] for s in traj.segs if s["kind"] == "flight"), None)}
     assert cal.gyro is not None and cal.accel is not None and cal.mag is not None
     temp = 25.0 + 5.0 * (1 - np.exp(-t_imu / 120.0))
     ctx = SimContext(
@@ -269,5 +344,6 @@ def simulate(
     tr = Truth(
         cal, profile, seed, imu_rate, mag_rate, noise=sig, segments=traj.annotations(),
         effects=[{**e.describe(), **ctx.info.get(id(e), {})} for e in effects], field_world=h_W.tolist(),
+        vehicle=vehicle,
     )
     return Simulation(data, tr, traj)

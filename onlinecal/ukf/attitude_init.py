@@ -74,17 +74,21 @@ def yaw_to_north(R_nom: Array, h_cal: Array) -> tuple[float, Array]:
 
 @dataclass
 class MagCollector:
-    """A bounded, time-decimated (one per 0.1 s) buffer of raw mag samples for the cold-start fit."""
+    """A bounded, time-decimated (one per 0.1 s) buffer (N, 3) of raw mag samples for the cold-start fit
+    (a numpy array: a flight whose field never sweeps 3-D keeps it full for the whole log)."""
 
-    buf: list[list[float]] = field(default_factory=list)
+    buf: Array = field(default_factory=lambda: np.zeros((0, 3)))
     next_t: float = -math.inf
 
     def add(self, tm: Array, m: Array, max_len: int) -> None:
-        for ti, mi in zip(tm, m, strict=True):
+        sel = []
+        for k, ti in enumerate(tm):
             if ti >= self.next_t:
-                self.buf.append([float(v) for v in mi])
-                self.next_t = ti + 0.1
-        if len(self.buf) > max_len:
+                sel.append(k)
+                self.next_t = float(ti) + 0.1
+        if sel:
+            self.buf = np.concatenate([self.buf, np.asarray(m, float)[sel]])
+        if self.buf.shape[0] > max_len:
             self.buf = self.buf[::2]
 
 
@@ -129,7 +133,9 @@ def fit_mag_cold(x: Array, c: UKFConfig) -> MagFit | None:
     sig_o = float(np.sqrt(np.max(np.diag(cov)[:3])))
     u = (x - o) / np.linalg.norm(x - o, axis=1)[:, None]
     spread = float(np.linalg.eigvalsh(u.T @ u / u.shape[0])[0])
-    if spread < c.mag_fit_min_spread or not sig_o < c.mag_fit_max_centre_sigma * r:
+    cover = float(np.linalg.eigvalsh(np.cov(u.T))[0])  # a band of directions (a flight) is not enough
+    if (spread < c.mag_fit_min_spread or cover < c.mag_fit_min_cover
+            or not sig_o < c.mag_fit_max_centre_sigma * r):
         return None
     fs = c.mag_fit_sigma
     x_m = np.concatenate([o, np.full(3, 1.0 / r), np.zeros(6)])

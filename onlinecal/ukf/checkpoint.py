@@ -13,6 +13,7 @@ from .blocks import HoldTracker, Lattice, RailDetector, RestDetector, SampleBuff
 from .config import UKFConfig
 from .health import NisMonitor, finite_or_none, none_to_inf
 from .rest import RestAccumulator
+from .vehicle import MotionCoverage, VehicleDetector
 
 STATE_SCHEMA = "onlinecal.ukf-state/2"
 
@@ -32,7 +33,7 @@ def get_state(f: Any) -> dict[str, Any]:
         "t_last": f._t_last, "w_last": f._w_last.tolist(), "att_ok": f._att_ok,
         "yaw_free": f._yaw_free,
         "align_yaw_next": f._align_yaw_next,
-        "mag_enabled": f.mag_enabled, "dip_known": f.dip_known, "mag_buf": f._mag_buf.buf,
+        "mag_enabled": f.mag_enabled, "dip_known": f.dip_known, "mag_buf": f._mag_buf.buf.tolist(),
         "mag_buf_next": finite_or_none(f._mag_buf.next_t), "mag_fit_next": finite_or_none(f._mag_fit_next),
         "next_trace": finite_or_none(f._next_trace), "n_imu": f._n_imu, "n_blocks": f._n_blocks,
         "nis": f._nis.stats, "events": f._log.events, "n_events": f._log.total, "trace": list(f._trace),
@@ -44,6 +45,7 @@ def get_state(f: Any) -> dict[str, Any]:
         "rail": f._rails.rail, "run": {k: [list(r) for r in v] for k, v in f._rails.run.items()},
         "clip_on": f._rails.clip_on, "T0": f._T0,
         "rest_acc": None if f._rest_acc is None else f._rest_acc.to_dict(),
+        "vehicle": f._vehicle.to_dict(), "coverage": f._coverage.get_state(),
     }
 
 
@@ -73,7 +75,7 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
     f._align_yaw_next = bool(d["align_yaw_next"])
     f.mag_enabled = bool(d["mag_enabled"])
     f.dip_known = bool(d["dip_known"])
-    f._mag_buf = MagCollector([list(v) for v in d["mag_buf"]], none_to_inf(d["mag_buf_next"]))
+    f._mag_buf = MagCollector(np.asarray(d["mag_buf"], float).reshape(-1, 3), none_to_inf(d["mag_buf_next"]))
     f._mag_fit_next = none_to_inf(d["mag_fit_next"])
     f._next_trace = none_to_inf(d["next_trace"])
     f._n_imu, f._n_blocks = int(d["n_imu"]), int(d["n_blocks"])
@@ -94,5 +96,9 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
                             {k: [(float(r[0]), int(r[1])) for r in v] for k, v in d["run"].items()},
                             {k: bool(v) for k, v in d["clip_on"].items()})
     f._T0 = d["T0"]
+    f._vehicle = VehicleDetector(c.vehicle_vibration_sigma, c.vehicle_dev_min)
+    f._vehicle.set_state(d.get("vehicle", {}))
+    f._coverage = MotionCoverage()
+    f._coverage.set_state(d.get("coverage", {}))
     ra = d.get("rest_acc")
     f._rest_acc = None if ra is None else RestAccumulator.from_dict(ra)

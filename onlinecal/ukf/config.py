@@ -62,6 +62,11 @@ class UKFConfig:
     divergence_windows: int = 3  # ... for this many windows in a row → divergence
     mag_fit_min_samples: int = 100
     mag_fit_min_spread: float = 0.1  # smallest eigenvalue of the scatter of unit field directions (1/3: a sphere)
+    # smallest eigenvalue of the *covariance* (centred) of the unit field directions: a flight's yaw turns
+    # and ±25° tilts sweep a band (0.001–0.009 over 10 min, multirotor and fixed-wing profiles) on which the
+    # centre along the band's axis and that axis' scale trade off against the gyro's x/y scale (a cold fit
+    # there ended 30–45σ off); the paper session reaches 0.058 within 60 s, 0.17 by 120 s
+    mag_fit_min_cover: float = 0.03
     mag_fit_max_centre_sigma: float = 0.01  # LS σ of the sphere's centre, relative to its radius
     mag_buffer_max: int = 2000
     max_gap_s: float = 0.5  # IMU gap that restarts the attitude
@@ -101,6 +106,21 @@ class UKFConfig:
     # 12/12 at 4 and at 8, and 12/12 on the 12 further seeds not used to choose it (benchmarks/ukf_stats.py
     # --cold 90 --set update_damping=…)
     update_damping: float = 4.0
+    # σ (rad) of the gauge sensor's held terms on a cold start: B *is* that sensor's frame by definition (a
+    # convention has no uncertainty). With the cold prior's 2° there instead, the relative alignment of the
+    # other sensors to it was not learned (paper session, cold: gyro and mag alphas both ~1° off in the
+    # accelerometer's frame, accel matrix 1.9 % off after the common rotation; with 1e-7: 0.002°)
+    gauge_cold_sigma: float = 1e-7
+    # a vehicle's own acceleration (:mod:`.vehicle`): "auto" detects it from the data (vibration, or a
+    # specific-force norm away from g), "vehicle" assumes it from the start, "platform" never. Once on,
+    # every accelerometer update outside a rest carries an unknown acceleration of σ vehicle_accel_sigma
+    # per axis correlated over vehicle_accel_tau s (a multirotor's ≤ 3 m/s² legs; a fixed-wing's turns,
+    # g·tan 30° ≈ 5.7 m/s² for up to 30 s), and rests are judged with the spec noise (vibration cannot pass)
+    vehicle: str = "auto"
+    vehicle_accel_sigma: float = 3.0
+    vehicle_accel_tau: float = 30.0
+    vehicle_vibration_sigma: float = 0.3  # m/s² per sample: above any MEMS accelerometer's own noise
+    vehicle_dev_min: float = 0.5  # m/s² of unexplained ||f| − g| for 5 blocks: a linear acceleration
     # the sensors' noise and ADC (onlinecal.specs): R, Q, the lattice test and the rail all scale with them
     gyro_spec: SensorSpec = GYRO_SPEC
     accel_spec: SensorSpec = ACCEL_SPEC

@@ -61,6 +61,7 @@ from .propagate import sensor_models
 from .rest import RestAccumulator
 from .state import StateLayout, choose_gauge, grow, initial_state, prior, reset_states
 from .unscented import Gating, Measurement, UpdateResult, merwe_weights
+from .vehicle import MotionCoverage, VehicleDetector, observability_report, vehicle_accel_var
 
 Array = NDArray[np.float64]
 STATE_SCHEMA = checkpoint.STATE_SCHEMA
@@ -100,6 +101,10 @@ class OnlineCalibrator:
         self._lat = Lattice()  # per log: value lattice of each sensor
         self._rails = RailDetector()
         self._T0: float | None = None
+        self._vehicle = VehicleDetector(c.vehicle_vibration_sigma, c.vehicle_dev_min)
+        if c.vehicle == "vehicle":
+            self._vehicle.active, self._vehicle.since, self._vehicle.reason = True, 0.0, "configured"
+        self._coverage = MotionCoverage()
         self._reset_calibration()
 
     def _configure(self) -> None:
@@ -334,16 +339,38 @@ class OnlineCalibrator:
 
     def _mag_collect(self, tm: Array, m: Array) -> None:
         if not self.mag_enabled:
+            if not self._mag_buf.buf.shape[0] and m.shape[0] and (self.init is None or self.init.mag is None):
+                self._mag_prior_from_raw(m)
             self._mag_buf.add(tm, m, self.config.mag_buffer_max)
+
+    def _mag_prior_from_raw(self, m: Array) -> None:
+        """Cold mag prior in the raw unit, from the first samples' field magnitude |m| (N, 3): scale 1/|m|
+        with σ ``cold_sigma`` relative to it (:func:`.state.prior` assumes a unit field). The mag is not
+        used before its fit, so this only changes what a log that never fits it reports: its prior."""
+        r = float(np.median(np.linalg.norm(m, axis=1)))
+        if not (math.isfinite(r) and r > 0):
+            return
+        sl = SENSOR_SLICE["mag"]
+        cs = self.config.cold_sigma["mag"]
+        x = np.concatenate([np.zeros(3), np.full(3, 1.0 / r), np.zeros(6)])
+        sig = np.concatenate([np.full(3, cs["bias"] * r), np.full(3, cs["scale"] / r),
+                              np.full(3, cs["alpha"]), np.full(3, cs["xi"])])
+        if self.gauge == "mag":  # its held terms define B: keep their prior
+            x[6:], sig[6:] = self.x[sl][6:], np.sqrt(np.diag(self.P)[sl][6:])
+        self.x[sl] = x
+        self.P[sl, :] = 0.0
+        self.P[:, sl] = 0.0
+        self.P[sl, sl] = np.diag(sig**2)
+        self.prior_x[sl], self.prior_sigma[sl] = x, sig
 
     def _try_mag_fit(self, t: float) -> None:
         """The mag's cold start (:func:`.attitude_init.fit_mag_cold`), tried once a second once enough
         samples are in; the filter's yaw is aligned to the field at the next mag block."""
         c = self.config
-        if t < self._mag_fit_next or len(self._mag_buf.buf) < c.mag_fit_min_samples:
+        if t < self._mag_fit_next or self._mag_buf.buf.shape[0] < c.mag_fit_min_samples:
             return
         self._mag_fit_next = t + 1.0
-        fit = fit_mag_cold(np.asarray(self._mag_buf.buf), c)
+        fit = fit_mag_cold(self._mag_buf.buf, c)
         if fit is None:
             return
         sl = SENSOR_SLICE["mag"]
@@ -351,7 +378,7 @@ class OnlineCalibrator:
         self.prior_sigma[sl] = fit.prior_sigma
         self.prior_x[sl] = self.x[sl]
         self.mag_enabled = True
-        self._mag_buf.buf = []
+        self._mag_buf.buf = np.zeros((0, 3))
         self._event("mag_cold_start", fit.detail, t)
         self._align_yaw_next = True
 
@@ -400,7 +427,8 @@ class OnlineCalibrator:
                                                          tuple(self.lay.hold_slice))
         for s in resets:
             self._reset_hold(s)
-        zero_rate = self._rest_det.update(B, b, n, c.rest_k, c.rest_blocks) and self._rest_det.still
+        zero_rate = self._rest_det.update(B, b, self._vehicle_rest_noise(B, b, n, tl), c.rest_k,
+                                          c.rest_blocks) and self._rest_det.still
         acc = self._rest_acc
         if acc is not None and (not zero_rate or self._hold_new or held != acc.held or mag_changed
                                 or use_mag != acc.use_mag):
@@ -430,6 +458,32 @@ class OnlineCalibrator:
     def _has_temp(self) -> bool:
         return any(e.startswith("temperature_bias") for e in self.lay.ext_slice)
 
+    def _vehicle_rest_noise(self, B: Blocks, b: int, n: dict[str, float], tl: float) -> dict[str, float]:
+        """Feed the vehicle detector (:mod:`.vehicle`) the block's accel vibration; the noise the rest test
+        judges against: on a vehicle the spec's, not the vibration-raised level (a vibrating vehicle is
+        not at rest, and its accelerometer then measures thrust, not gravity)."""
+        if self.config.vehicle == "auto":
+            why = self._vehicle.update(math.sqrt(max(0.0, float(B.var3["accel"][b]))), None, tl)
+            if why:
+                self._event("vehicle", why + ": vehicle acceleration modelled from here on", tl)
+        if self._vehicle.active and self._noise.high["accel"]:
+            return dict(n, accel=n["accel"] / math.sqrt(self._noise.ratio["accel"]))
+        return n
+
+    def _vehicle_accel(self, M: Array, o: Array, a_mean: Array, sig_mean: float, dt: float, tl: float) -> float:
+        """Variance (m/s²)² the vehicle's unknown acceleration adds to a moving block's accel update
+        (0 until the data show a vehicle: :class:`.vehicle.VehicleDetector`, fed here the specific-force
+        norm's unexplained deviation from g for the sigma points' models M (S, 3, 3), o (S, 3))."""
+        c = self.config
+        if c.vehicle == "auto" and not self._vehicle.active:
+            f_all = np.einsum("sij,sj->si", M, a_mean - o)
+            why = self._vehicle.update(math.nan, self._models.acc.deviation(f_all, self._Wm, self._Wc, sig_mean), tl)
+            if why:
+                self._event("vehicle", why + ": vehicle acceleration modelled from here on", tl)
+        if not self._vehicle.active:
+            return 0.0
+        return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt)
+
     def _motion_step(self, B: Blocks, b: int, t: Array, a: Array, T: Array, n: dict[str, float],
                      held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
         """Predict over the block, then one update with its mean accel (unless clipped) and mag."""
@@ -450,11 +504,17 @@ class OnlineCalibrator:
         T_reg = float(np.mean(self._temp_reg(T))) if self._has_temp() else 0.0
         rate = float(np.linalg.norm(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr)))
         n_m = int(B.mhi[b] - B.mlo[b])
+        S = X.shape[0]
+        o, M = sens[0][:S], sens[1][:S]
+        var_v = self._vehicle_accel(M, o, B.a_mean[b], n["accel"] / math.sqrt(t.size), dt_blk, tl)
+        self._coverage.add_motion(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr), dt_blk, self._vehicle.active)
+        if use_mag:
+            self._coverage.add_field(self._calibrated("mag", B.m_mean[b]))
         meas = motion_measurements(
             self._models, X, pred.f_body, pred.h_body, sens, None if clip["accel"] else B.a_mean[b],
             B.m_mean[b] if use_mag else None, n["accel"] / math.sqrt(t.size), n["mag"] ** 2 / max(n_m, 1),
             (self._Wm, self._Wc), rate, (self._offsets("accel", held["accel"]), self._offsets("mag", held["mag"])),
-            T_reg)
+            T_reg, var_v)
         if not meas:
             self._commit(x_pred, P_pred, tl)
             return
@@ -477,10 +537,13 @@ class OnlineCalibrator:
         first = acc is None
         if acc is None:
             acc = self._rest_acc = RestAccumulator.start(self.x, self.P, self.R_nom, held, use_mag)
-        acc.q += self._process_noise(float(t[-1] - self._t_last), n["gyro"])
+        dt_blk = float(t[-1] - self._t_last)
+        acc.q += self._process_noise(dt_blk, n["gyro"])
         for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
             self._nis_record(s, nis, tl)
         acc.add(B, b, n, not clip["accel"], use_mag, self._temp_reg(T) if self._has_temp() else None)
+        if acc.na:
+            self._coverage.add_rest(self._calibrated("accel", acc.sa / acc.na), dt_blk)
         x0, P0 = acc.x, acc.P + np.diag(acc.q)
         self.x, self.P, self.R_nom = x0.copy(), P0, acc.R_nom
         try:
@@ -591,7 +654,8 @@ class OnlineCalibrator:
         """The current estimate as a Calibration (source "online") with 1σ for bias, scale, alpha, xi, and
         the model extensions (``extensions``, the contract's effect keys) with their σ."""
         meta = {"mag_used": bool(self.mag_enabled), "imu_samples": self._n_imu, "blocks": self._n_blocks,
-                "quantisation": dict(self._lat.q or {}), "events": list(self.events), "nis": self.nis_summary()}
+                "quantisation": dict(self._lat.q or {}), "events": list(self.events), "nis": self.nis_summary(),
+                "observability": self.observability_report()}
         return calibration_of(self.x, self.sigma(), self.lay, meta, self.extensions(), self.init)
 
     def extensions(self) -> dict[str, Any]:
@@ -605,6 +669,19 @@ class OnlineCalibrator:
     def observability(self) -> dict[str, dict[str, Any]]:
         """Per parameter: posterior σ / prior σ and whether it is excited (ratio below ``excited_ratio``)."""
         return observability(self.sigma(), self.prior_sigma, self.lay, self.config.excited_ratio)
+
+    def observability_report(self) -> dict[str, Any]:
+        """Which terms the data determined, which not, why, and what motion would determine them
+        (:func:`.vehicle.observability_report`), with the motion's coverage and the vehicle detector."""
+        lay = self.lay
+        held = {f"{lay.gauge}.{p}.{a}" for p in lay.gauge_terms for a in AXES} if lay.gauge else set()
+        pub = lay.public()
+        idx = [i for i, _ in pub]
+        return observability_report(["att.x", "att.y", "att.z"] + [nm for _, nm in pub],
+                                    np.concatenate([np.zeros(3), self.sigma()[idx]]),
+                                    np.concatenate([np.ones(3), self.prior_sigma[idx]]),
+                                    self._coverage, self._vehicle, held, lay.gauge, self.config.excited_ratio,
+                                    bool(self.mag_enabled))
 
     def missing_motion(self) -> list[str]:
         """What motion is still needed to excite the parameters that are not yet excited."""

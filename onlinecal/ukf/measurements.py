@@ -81,15 +81,20 @@ class AccelModel:
         (r ω²)². Judged against the calibration's σ, not its mean alone, so that a calibration error is
         not taken for motion."""
         f_all = np.einsum("sij,sj->si", M, a_mean - o)
-        nf = np.sqrt(np.einsum("si,si->s", f_all, f_all))
-        nf_mean = float(Wm @ nf)
-        var_cal = max(0.0, float(Wc @ (nf - nf_mean) ** 2))
+        dev = self.deviation(f_all, Wm, Wc, sig_mean)
         g = self.gravity
-        dev = max(0.0, abs(nf_mean - g) - 3.0 * math.sqrt(sig_mean**2 + var_cal))
         var = sig_mean**2 + (self.dev_gain * dev) ** 2 + 2.0 * g * dev
         if rate:
             var = var + (self.lever_m * rate**2) ** 2
         return var, f_all
+
+    def deviation(self, f_all: Array, Wm: Array, Wc: Array, sig_mean: float) -> float:
+        """The part of ||f| − g| (m/s²) beyond 3σ of what the noise (σ ``sig_mean``) and the calibration's
+        own uncertainty (spread of |f| over the sigma points' specific forces f_all (S, 3)) explain."""
+        nf = np.sqrt(np.einsum("si,si->s", f_all, f_all))
+        nf_mean = float(Wm @ nf)
+        var_cal = max(0.0, float(Wc @ (nf - nf_mean) ** 2))
+        return max(0.0, abs(nf_mean - self.gravity) - 3.0 * math.sqrt(sig_mean**2 + var_cal))
 
 
 @dataclass(frozen=True)
@@ -177,18 +182,20 @@ class Models:
 def motion_measurements(mod: Models, X: Array, f_body: Array, h_body: Array | None,
                         sens: tuple[Array, Array, Array], z_acc: Array | None, z_mag: Array | None,
                         sig_acc: float, var_mag: float, W: tuple[Array, Array], rate: float,
-                        off: tuple[Offsets, Offsets], T_reg: float) -> list[Measurement]:
+                        off: tuple[Offsets, Offsets], T_reg: float, var_vehicle: float = 0.0) -> list[Measurement]:
     """A motion block's measurements for the propagated sigma points X (S, n): the block-mean accel z_acc
     (None: clipped) against g·f_body, the block-mean mag z_mag (None: not used) against h_body (both
     block means of the propagation, (S, 3)). ``sens`` (o, M, M⁻¹) of accel then mag for every point
     ((2S, 3), (2S, 3, 3) ×2); ``sig_acc`` σ of the accel mean (noise only), ``var_mag`` the mag mean's
     variance; W = (Wm, Wc); rate rad/s the block's mean turn rate (lever-arm term); ``off`` the accel's
-    and mag's offsets; T_reg the temperature regressor (°C)."""
+    and mag's offsets; T_reg the temperature regressor (°C); ``var_vehicle`` (m/s²)² the unknown vehicle
+    acceleration's share of the accel variance (:func:`.vehicle.vehicle_accel_var`, 0 off a vehicle)."""
     S = X.shape[0]
     o, M, Minv = sens
     meas = []
     if z_acc is not None:
         var_a, _ = mod.acc.variance(M[:S], o[:S], z_acc, W[0], W[1], sig_acc, rate)
+        var_a += var_vehicle
         Za = mod.acc.h(X, f_body, off[0], T_reg, (o[:S], Minv[:S]))
         meas.append(Measurement("accel", z_acc, Za, np.full(3, var_a)))
     if z_mag is not None and h_body is not None:

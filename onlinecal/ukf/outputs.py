@@ -45,6 +45,7 @@ def calibration_of(x: Array, sig: Array, lay: StateLayout, meta_online: dict[str
         "extensions_sigma": extensions_sigma(sig, lay),
         "extensions_unit": {e: EXTENSIONS[e][2] for e in lay.ext_slice},
         "events": meta_online["events"], "nis": meta_online["nis"],
+        **({"observability": meta_online["observability"]} if "observability" in meta_online else {}),
     }}
     gauge = g
     if g == "gyro" and init is not None and init.gauge == "gyro_phases" and "xi" in lay.gauge_terms:

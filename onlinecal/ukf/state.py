@@ -161,6 +161,10 @@ def prior(init: Calibration | None, config: UKFConfig, gauge: str | None,
         if cal is None:
             x[sl] = np.concatenate([np.zeros(3), np.ones(3), np.zeros(6)])
             sig[sl] = np.repeat([cold[p] for p in PARAMS], 3)
+            if s == gauge:
+                # cold: B is this sensor's frame by definition, the held terms carry no uncertainty
+                for p in gauge_terms:
+                    sig[sl.start + PARAMS.index(p) * 3 : sl.start + PARAMS.index(p) * 3 + 3] = c.gauge_cold_sigma
         else:
             x[sl] = np.concatenate([cal.bias, cal.scale, cal.alpha, cal.xi])
             given = given_sigma(cal)

@@ -16,8 +16,8 @@ from netutil import Sender, free_port
 
 from onlinecal.io.base import ImuData, LogError
 from onlinecal.io.live import LiveSource
-from onlinecal.io.sender import fault_schedule, send_session
 from onlinecal.sim.sensors import simulate
+from onlinecal.testing.sender import fault_schedule, send_session
 
 G0 = 9.80665
 WATCHDOG_S = 15.0  # no single stream in this file may take longer

@@ -45,11 +45,19 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.sender import ACC_UNIT, GYRO_UNIT, MAG_UNIT, MAV_CMD_SET_MESSAGE_INTERVAL, mavutil_v2
+from onlinecal.io.mavlink import (
+    ACC_UNIT,
+    GYRO_UNIT,
+    MAG_UNIT,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_COMP_ID_MISSIONPLANNER,
+    MSG_ID,
+    mavutil_v2,
+)
 from onlinecal.io.validate import SampleFilter
 
-RAW_IMU_ID = 27
-_GCS_COMPONENT = 190  # MAV_COMP_ID_MISSIONPLANNER: what a ground station calls itself
+RAW_IMU_ID = MSG_ID["RAW_IMU"]
+_GCS_COMPONENT = MAV_COMP_ID_MISSIONPLANNER  # what a ground station calls itself
 _SCHEMES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcpin:", "tcp:", "uds:", "unix:", "mcast:",
             "ws:", "wss:", "wsserver:")
 _LOG_SUFFIXES = (".tlog", ".bin", ".log", ".csv", ".px4log", ".mavlink", ".raw")

@@ -33,31 +33,16 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.mavlink import ACC_UNIT, GYRO_UNIT, IMU_MESSAGES, MAG_UNIT, SCALED_INSTANCE, mavutil_v2
 from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file
 
-G0 = 9.80665
-IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "HIGHRES_IMU")
-_INT_UNITS = {"acc": G0 * 1e-3, "gyro": 1e-3, "mag": 1e-3}  # RAW_IMU / SCALED_IMU*
+__all__ = ["IMU_MESSAGES", "TlogReader", "mavutil_v2", "write_tlog"]
+_INT_UNITS = {"acc": ACC_UNIT, "gyro": GYRO_UNIT, "mag": MAG_UNIT}  # RAW_IMU / SCALED_IMU*
 _SI_UNITS = {"acc": 1.0, "gyro": 1.0, "mag": 1.0}  # HIGHRES_IMU
 _DECIDE_AFTER = 1000  # IMU messages looked at before settling for a source other than RAW_IMU id 0
 _TLOG_EPOCH_US = 1_700_000_000_000_000  # wall-clock base of written tlog timestamps (2023-11-14)
 _INT16 = (-32768, 32767)
 _NOT_MESSAGES = ("MAV", "HOME", "BAD_DATA")  # entries of pymavlink's ``messages`` that are not a message read
-
-
-def mavutil_v2() -> Any:
-    """pymavlink's mavutil with the MAVLink 2 parser (which also reads MAVLink 1 packets).
-
-    pymavlink switches to MAVLink 2 itself only when the very first packet of a file is MAVLink 2
-    (and then sets MAVLINK20 for the whole process); a tlog starting with a v1 packet would lose its
-    later v2 packets. Selecting v2 up front is the same global switch, made deterministic.
-    """
-    os.environ.setdefault("MAVLINK20", "1")
-    from pymavlink import mavutil
-
-    if getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "1.0") != "2.0":
-        mavutil.set_dialect(mavutil.current_dialect or "ardupilotmega")
-    return mavutil
 
 
 class TlogReader:
@@ -211,7 +196,7 @@ def _source_key(msg: Any, typ: str) -> tuple:
     if typ in ("RAW_IMU", "HIGHRES_IMU"):
         inst = int(getattr(msg, "id", 0) or 0)
     else:
-        inst = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}[typ]
+        inst = SCALED_INSTANCE[typ]
     return (msg.get_srcSystem(), msg.get_srcComponent(), typ, inst)
 
 
@@ -247,8 +232,8 @@ def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
     if t.size and (not np.all(np.isfinite(t)) or t.min() < 0):
         raise ValueError("write_tlog needs finite, non-negative IMU times")
     usec = np.rint(t * 1e6).astype(np.int64)
-    acc = _q16(data.acc, G0 * 1e-3)
-    gyro = _q16(data.gyro, 1e-3)
+    acc = _q16(data.acc, ACC_UNIT)
+    gyro = _q16(data.gyro, GYRO_UNIT)
     temp = np.nan_to_num(np.asarray(data.temp, np.float64), nan=0.0)
     temp_c = np.clip(np.rint(temp * 100.0), *_INT16).astype(np.int64)
     temp_c[(temp_c == 0) & np.isfinite(data.temp)] = 1

@@ -34,6 +34,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from ..io.base import ImuData, LogError
+from ..io.mavlink import MAV_PARAM_TYPE_INT32
 from ..model import Calibration
 from .filter import OnlineCalibrator, UKFConfig
 from .replay import OnlineResult
@@ -42,7 +43,6 @@ CHECKPOINT_SCHEMA = "onlinecal.live-checkpoint/1"
 # Link counters that add up over the runs of one calibration (a resumed run continues them).
 _COUNTERS = ("received", "emitted", "lost", "mag", "mag_uncertain", "duplicates", "reordered", "dropped_late",
              "reconnects", "ack", "interval_requests", "heartbeats", "ignored", "bad_data", "clock_resets")
-_MAV_PARAM_TYPE_INT32 = 6
 _END = object()  # end of the link reader's queue
 
 
@@ -356,7 +356,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
                 result.applied = {}
                 return result
             print(f"onlinecal run: setting {len(params)} {apply} parameters on the vehicle", file=out, flush=True)
-            types = {n: _MAV_PARAM_TYPE_INT32 for n in params if n in int_names}
+            types = {n: MAV_PARAM_TYPE_INT32 for n in params if n in int_names}
             result.applied = src.set_params(params, types=types, bytewise=apply == "px4")
         return result
     finally:

@@ -12,7 +12,8 @@ import pytest
 from onlinecal.io import ImuData, LogError, open_log, read_log, write_log
 from onlinecal.io.csv import COLUMNS, write_csv
 from onlinecal.io.dataflash import write_dataflash
-from onlinecal.io.tlog import G0, write_tlog
+from onlinecal.io.mavlink import G0
+from onlinecal.io.tlog import write_tlog
 
 DATA = Path(__file__).parents[1].parent / "shared" / "data"
 MARG = DATA / "marg-set1"

@@ -51,6 +51,7 @@ class CsvReader:
         # unit conversion of the integer formats).
         self.scale = {k: 1.0 if v is None else float(v)
                       for k, v in (("acc", acc_scale), ("gyro", gyro_scale), ("mag", mag_scale))}
+        self._si_units = acc_scale is None and gyro_scale is None
         check_file(self.path)  # the same words as the other formats for a missing, empty or directory path
         with self._open() as f:
             self._names, self._col = self._read_header(f)
@@ -109,9 +110,10 @@ class CsvReader:
         Raises LogError for malformed rows (naming the line) and, at the end, for a log that is
         unusable as a whole (see :mod:`onlinecal.io.validate`).
         """
-        filt = SampleFilter(self.path, unit="rows", lookahead=LOOKAHEAD, gaps=True)
+        filt = SampleFilter(self.path, unit="rows", lookahead=LOOKAHEAD, gaps=True,
+                            limits=self._si_units)
         self.warnings = filt.warnings
-        asm = BlockAssembler(self.path, filt.warnings, max_samples)
+        asm = BlockAssembler(self.path, filt.warnings, max_samples, filt)
         # Lines hold IMU or mag samples, so read a bit more than one block's worth per chunk.
         chunk = int(min(max(2 * max_samples, 4096), 1 << 16))
         empty_rows = 0

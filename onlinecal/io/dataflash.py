@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file
+from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
 HEAD = b"\xa3\x95"
 FMT_ID = 0x80
@@ -121,13 +121,18 @@ class DataflashReader:
             "gyro": 1.0 if gyro_scale is None else float(gyro_scale),
             "mag": 1e-3 if mag_scale is None else float(mag_scale),
         }
+        self._si_units = acc_scale is None and gyro_scale is None
         check_file(self.path)
+        # A DataFlash log starts with its FMT records: one must be in the first megabytes.
+        probe_head(self.path, lambda head: HEAD + bytes([FMT_ID]) in head,
+                   "no DataFlash record in {span} (FMT or other); not an ArduPilot .bin log?")
 
     def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
         """Yield ImuData blocks of at most ``max_samples`` IMU samples, in log order."""
-        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True)
+        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True,
+                            limits=self._si_units)
         self.warnings = filt.warnings
-        asm = BlockAssembler(self.path, filt.warnings, max_samples)
+        asm = BlockAssembler(self.path, filt.warnings, max_samples, filt)
         skipped = 0
         try:
             with _captured_output(fd_level=True):

@@ -34,7 +34,7 @@ import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
 from onlinecal.io.mavlink import ACC_UNIT, GYRO_UNIT, IMU_MESSAGES, MAG_UNIT, SCALED_INSTANCE, mavutil_v2
-from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file
+from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
 __all__ = ["IMU_MESSAGES", "TlogReader", "mavutil_v2", "write_tlog"]
 _INT_UNITS = {"acc": ACC_UNIT, "gyro": GYRO_UNIT, "mag": MAG_UNIT}  # RAW_IMU / SCALED_IMU*
@@ -55,12 +55,14 @@ class TlogReader:
         self.scale_override = {"acc": acc_scale, "gyro": gyro_scale, "mag": mag_scale}
         self.source: str | None = None  # the IMU source read, e.g. "RAW_IMU id 0 (system 1)"
         check_file(self.path)
+        probe_head(self.path, _has_mavlink, "no MAVLink message in {span}; not a MAVLink telemetry log?")
 
     def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
         """Yield ImuData blocks of at most ``max_samples`` IMU samples, in log order."""
-        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True)
+        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True,
+                            limits=self.scale_override["acc"] is None and self.scale_override["gyro"] is None)
         self.warnings = filt.warnings
-        asm = BlockAssembler(self.path, filt.warnings, max_samples)
+        asm = BlockAssembler(self.path, filt.warnings, max_samples, filt)
         mavutil = mavutil_v2()
         try:
             conn = mavutil.mavlogfile(self.path, robust_parsing=True)
@@ -190,6 +192,24 @@ class _State:
         self.imu, self.mag = [], []
         imu = (a[:, 0], a[:, 1:4] * units["gyro"], a[:, 4:7] * units["acc"], a[:, 7])
         return imu, (b[:, 0], b[:, 1:4] * units["mag"])
+
+
+def _has_mavlink(head: bytes) -> bool:
+    """Does ``head`` hold one MAVLink packet with a valid checksum (of a message this dialect knows)? Tried
+    at the first 2000 start-of-frame bytes (0xFD v2, 0xFE v1), each with a fresh parser."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    arr = np.frombuffer(head, np.uint8)
+    for p in np.flatnonzero((arr == 0xFD) | (arr == 0xFE))[:2000].tolist():
+        mav = mavlink2.MAVLink(None)
+        mav.robust_parsing = True
+        try:
+            msgs = mav.parse_buffer(head[p:p + 280]) or []
+        except Exception:  # pymavlink's own failures on a bad frame: try the next start byte
+            continue
+        if any(m.get_type() != "BAD_DATA" and not m.get_type().startswith("UNKNOWN_") for m in msgs):
+            return True
+    return False
 
 
 def _source_key(msg: Any, typ: str) -> tuple:

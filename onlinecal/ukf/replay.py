@@ -20,7 +20,7 @@ class OnlineResult:
     (divergences, gaps, the mag cold start), the NIS summary, per-parameter observability (posterior σ /
     prior σ), the motions still missing, the trace rows, and the speed (samples, wall time, log time).
     ``boundaries``: the clock segments met (each with ``log``, the index of its log; see ImuData.boundaries),
-    also in ``calibration.meta["online"]["segments"]``."""
+    also in ``calibration.meta["online"]["segments"]``. ``warnings``: one sentence per boundary met."""
 
     calibration: Calibration
     events: list[dict[str, Any]]
@@ -33,6 +33,7 @@ class OnlineResult:
     log_s: float = 0.0
     state: dict[str, Any] | None = None
     boundaries: list[dict[str, Any]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def realtime_factor(self) -> float:
@@ -89,9 +90,12 @@ def replay_stream(logs: Iterable[Iterable[ImuData]], init: Calibration | None = 
     res_cal = cal.result()
     if bounds:
         res_cal.meta.setdefault("online", {})["segments"] = [dict(b) for b in bounds]
+    said = [f"{Path(b['source']).name}: new segment at t={b['t']:.3f} s ({b['cause']}: raw clock "
+            f"{b['before_s']:.3f} s -> {b['after_s']:.3f} s): attitude restarted, calibration carried over"
+            for b in bounds]
     return OnlineResult(res_cal, list(cal.events), cal.nis_summary(), cal.observability(),
                         cal.missing_motion(), rows, cal._n_imu, wall, log_s,
-                        cal.get_state() if keep_state else None, bounds)
+                        cal.get_state() if keep_state else None, bounds, said)
 
 
 def _feed(cal: OnlineCalibrator, d: ImuData, chunk: int | None, done: int, total: int,

@@ -1,8 +1,10 @@
 """MAVLink telemetry logs (``.tlog``): read IMU messages in bounded blocks, and write RAW_IMU logs.
 
 A tlog is a sequence of ``[8-byte big-endian µs wall-clock timestamp][MAVLink packet]``. The reader
-takes ONE IMU source: RAW_IMU with id 0 if the log has it, else the first IMU source seen (message
-type, id, system, component). The choice is made from the first ``_DECIDE_AFTER`` IMU messages (kept
+takes ONE IMU source (message type, instance, system, component): of IMU instance ``imu`` (default 0:
+RAW_IMU/HIGHRES_IMU ``id``, SCALED_IMU = 0, SCALED_IMU2 = 1, SCALED_IMU3 = 2), RAW_IMU if the log has it,
+else HIGHRES_IMU (what PX4 streams), else SCALED_IMU*; with ``imu`` = 0 and none of instance 0, the first
+source seen. The choice is made from the first ``_DECIDE_AFTER`` IMU messages (kept
 in memory until then) so the log is read once; other sources are named in a warning.
 
 Units (defaults; ``acc_scale``/``gyro_scale``/``mag_scale`` replace the multiplier):
@@ -49,8 +51,9 @@ class TlogReader:
     """Streaming reader of the IMU (and the magnetometer it carries) in one MAVLink ``.tlog``."""
 
     def __init__(self, path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
-                 mag_scale: float | None = None) -> None:
+                 mag_scale: float | None = None, imu: int = 0) -> None:
         self.path = str(path)
+        self.imu = int(imu)
         self.warnings: list[str] = []
         self.scale_override = {"acc": acc_scale, "gyro": gyro_scale, "mag": mag_scale}
         self.source: str | None = None  # the IMU source read, e.g. "RAW_IMU id 0 (system 1)"
@@ -93,8 +96,8 @@ class TlogReader:
                     seen[key] = _describe(key)
                 if chosen is None:
                     pending.append((key, msg))
-                    if (typ == "RAW_IMU" and key[3] == 0) or len(pending) >= _DECIDE_AFTER:
-                        chosen = key if typ == "RAW_IMU" and key[3] == 0 else next(iter(seen))
+                    if (typ == "RAW_IMU" and key[3] == self.imu) or len(pending) >= _DECIDE_AFTER:
+                        chosen = self._choose(seen)
                         for k, m in pending:
                             if k == chosen:
                                 st.add(m, k[2])
@@ -105,7 +108,7 @@ class TlogReader:
                     self._flush(st, filt, asm)
                     yield from asm.pop()
             if chosen is None and seen:
-                chosen = next(iter(seen))
+                chosen = self._choose(seen)
                 for k, m in pending:
                     if k == chosen:
                         st.add(m, k[2])
@@ -135,6 +138,18 @@ class TlogReader:
         asm.add(*filt.flush())
         filt.finish()
         yield from asm.pop(final=True)
+
+    def _choose(self, seen: dict[tuple, str]) -> tuple:
+        """The source of instance ``imu``: RAW_IMU, else HIGHRES_IMU, else SCALED_IMU*; LogError if the log has
+        no IMU of that instance (``imu`` = 0: the first source seen)."""
+        rank = {"RAW_IMU": 0, "HIGHRES_IMU": 1}
+        mine = sorted((k for k in seen if k[3] == self.imu), key=lambda k: rank.get(k[2], 2))
+        if mine:
+            return mine[0]
+        if self.imu == 0:
+            return next(iter(seen))
+        raise LogError(self.path, f"no IMU instance {self.imu} in the log (it holds {', '.join(seen.values())}); "
+                       f"pick one with --imu N")
 
     @staticmethod
     def _flush(st: _State, filt: SampleFilter, asm: BlockAssembler) -> None:

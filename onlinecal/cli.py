@@ -26,8 +26,10 @@ class Unavailable(Exception):
     """A command or option this version does not have yet; says so instead of a made-up answer."""
 
 
-def _scales(a: argparse.Namespace) -> dict[str, float | None]:
-    return {"acc_scale": a.acc_scale, "gyro_scale": a.gyro_scale, "mag_scale": a.mag_scale}
+def _scales(a: argparse.Namespace) -> dict[str, Any]:
+    # --imu (helper io): the IMU instance, passed to every reader and to the live source with the scales
+    return {"acc_scale": a.acc_scale, "gyro_scale": a.gyro_scale, "mag_scale": a.mag_scale,
+            "imu": getattr(a, "imu", 0)}
 
 
 def _read_logs(paths: Sequence[str], a: argparse.Namespace) -> list[Any]:
@@ -251,6 +253,8 @@ def cmd_run(a: argparse.Namespace) -> int:
             raise UsageError(f"{opt}: must be a positive number, got {v:g}")
     if a.duration is not None and not a.duration > 0:
         raise UsageError(f"--duration: must be a positive number of seconds, got {a.duration:g}")
+    if not a.idle_timeout >= 0 or a.idle_timeout == float("inf"):
+        raise UsageError(f"--idle-timeout: must be a number of seconds >= 0, got {a.idle_timeout:g}")
     init = _load_cal(a.init) if a.init else None
     from .apply_ext import check_live, live_transform
 
@@ -261,7 +265,9 @@ def cmd_run(a: argparse.Namespace) -> int:
     try:
         res = ukf.run_live(a.connect, init, duration_s=a.duration, json_out=a.json, trace_out=a.trace,
                            checkpoint=a.checkpoint, checkpoint_every_s=a.checkpoint_every, resume=a.resume,
-                           rate_hz=a.rate, apply=a.apply, transform=live_transform(init), **_scales(a))
+                           rate_hz=a.rate, apply=a.apply, transform=live_transform(init),
+                           idle_timeout_s=a.idle_timeout or None, source_system=a.sysid, source_component=a.compid,
+                           **_scales(a))
         if init is not None and init.extensions and not res.calibration.extensions:
             res.calibration = res.calibration.replace(extensions=init.extensions)
             if a.json:
@@ -374,11 +380,26 @@ def _add_scales(p: argparse.ArgumentParser) -> None:
     p.add_argument("--acc-scale", type=float, default=None, help="multiplier to m/s^2 (default: per format)")
     p.add_argument("--gyro-scale", type=float, default=None, help="multiplier to rad/s (default: per format)")
     p.add_argument("--mag-scale", type=float, default=None, help="multiplier for mag (default: per format)")
+    # helper io: the IMU instance of multi-IMU logs and links
+    p.add_argument("--imu", type=_nonneg_int, default=0, metavar="N",
+                   help="IMU instance to read: .bin IMU I=N (IMU2/IMU3 in old logs), .tlog/link RAW_IMU or "
+                        "HIGHRES_IMU id N or SCALED_IMU/2/3, .ulg sensor topic instance N (default 0)")
 
 
 def _add_quiet(p: argparse.ArgumentParser) -> None:
     # SUPPRESS: given after the command it sets a.quiet; absent, the global flag's value stays
     p.add_argument("--quiet", "-q", action="store_true", default=argparse.SUPPRESS, help="no progress bars")
+
+
+def _nonneg_int(s: str) -> int:
+    """argparse type (helper io): an integer >= 0."""
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {s!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
+    return v
 
 
 def _positive_int(s: str) -> int:
@@ -451,6 +472,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=float, default=10.0, metavar="S",
                    help="wall seconds between checkpoints (default 10)")
     p.add_argument("--resume", action="store_true", help="continue from --checkpoint FILE")
+    # helper io: end of an idle link, and the vehicle to read when several send
+    p.add_argument("--idle-timeout", type=float, default=10.0, metavar="S",
+                   help="end the run, with its result, after S seconds without IMU data (0: never; default 10)")
+    p.add_argument("--sysid", type=_nonneg_int, default=None, metavar="N",
+                   help="read the vehicle with this MAVLink system id (default: the first HEARTBEAT's)")
+    p.add_argument("--compid", type=_nonneg_int, default=None, metavar="N",
+                   help="... and this component id (default: the first one seen)")
     p.add_argument("--rate", type=float, default=100.0, metavar="HZ",
                    help="RAW_IMU rate asked of the vehicle (SET_MESSAGE_INTERVAL; 0: ask nothing; default 100)")
     p.add_argument("--apply", choices=["ardupilot", "px4"], default=None,

@@ -154,6 +154,10 @@ def cmd_replay(a: argparse.Namespace) -> int:
     from .report import truth_table, write_report
 
     report = _report_dir(a.report) if a.report else None
+    if a.init != "batch" and report is None:
+        streamed = _replay_streamed(a)  # helper io: constant memory in the logs' length
+        if streamed is not None:
+            return streamed
     with bar(len(a.logs), desc="read", unit="logs") as pb:
         logs = []
         for p in a.logs:
@@ -188,6 +192,34 @@ def cmd_replay(a: argparse.Namespace) -> int:
                                    init=None if batch is not None else init, progress=st)
     print(truth_table(None, init, res.calibration))
     return _wrote(res.calibration, a.json, report, written)
+
+
+def _replay_streamed(a: argparse.Namespace) -> int | None:
+    """``replay`` without the batch step (helper io): every log streamed block by block through the filter
+    (onlinecal.ukf.replay.replay_stream), so memory does not grow with the logs' length. None when the start
+    calibration carries extensions that need whole logs (the caller then reads them whole)."""
+    from .io import open_log
+    from .progress import bar
+    from .report import truth_table
+    from .ukf.replay import replay_stream
+
+    init = None if a.init == "none" else _load_cal(a.init)
+    if init is not None and init.extensions:
+        return None
+    readers = [open_log(p, **_scales(a)) for p in a.logs]  # every file checked before the work starts
+    from .fleet import REPLAY_CHUNK
+
+    with bar(None, desc="replay", unit="samples") as pb:
+        def show(i: int, n: int) -> None:
+            pb.set(i)
+
+        res = replay_stream((r.blocks(REPLAY_CHUNK) for r in readers), init, chunk=REPLAY_CHUNK,
+                            trace_path=a.trace, on_progress=show)
+    for r in readers:
+        _warn([f"{r.path}: {w}" for w in r.warnings])
+    _warn(res.warnings)
+    print(truth_table(None, init, res.calibration))
+    return _wrote(res.calibration, a.json, None, [])
 
 
 def _replay_fleet(a: argparse.Namespace) -> int:

@@ -125,9 +125,9 @@ def _guarded_reader_class() -> type:
 
             def _parse_next(self) -> Any:
                 while True:
-                    start = self.offset
+                    start = int(getattr(self, "offset"))  # noqa: B009 - pymavlink's untyped attribute
                     m = super()._parse_next()
-                    if m is None or self.offset > start:
+                    if m is None or int(getattr(self, "offset")) > start:  # noqa: B009
                         return m
                     self.stalls += 1
                     self.offset = start + 1

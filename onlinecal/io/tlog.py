@@ -126,6 +126,7 @@ class TlogReader:
             shown = ", ".join(kinds[:8]) + (", ..." if len(kinds) > 8 else "")
             raise LogError(self.path, f"no IMU messages ({', '.join(IMU_MESSAGES)}) in the log; it holds {shown}")
         self._flush(st, filt, asm)
+        assert chosen is not None  # seen is not empty, so a source was chosen
         self.source = seen[chosen]
         others = [d for k, d in seen.items() if k != chosen]
         if others:

@@ -154,7 +154,7 @@ class _Trace:
         if new:
             self.fields = list(rows[0].keys())
         with self.path.open("a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=self.fields, extrasaction="ignore")
+            w = csv.DictWriter(fh, fieldnames=self.fields or [], extrasaction="ignore")
             if new:
                 w.writeheader()
             w.writerows(rows)
@@ -233,7 +233,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
         cal = OnlineCalibrator(init, config)
     base = dict(ck["link"]) if ck else {}
     resumes = int(base.get("resumes", 0)) + (1 if ck else 0)
-    fed = dict(ck["fed"]) if ck else {"imu": 0, "t_first": None, "t_last": None}
+    fed: dict[str, Any] = dict(ck["fed"]) if ck else {"imu": 0, "t_first": None, "t_last": None}
     trace = _Trace(trace_out, resume=ck is not None)
 
     opts = dict(source_options or {})
@@ -278,7 +278,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
         stopped.append(signum)
         src.stop()
 
-    old: dict[int, Any] = {}
+    old: dict[signal.Signals, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             old[sig] = signal.signal(sig, on_signal)

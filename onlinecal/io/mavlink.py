@@ -71,25 +71,3 @@ def imu_instance(msg: Any, typ: str) -> int:
     if typ in SCALED_INSTANCE:
         return SCALED_INSTANCE[typ]
     return int(getattr(msg, "id", 0) or 0)
-
-
-def imu_fields(msg: Any, typ: str, hr_temp: float) -> tuple[float, tuple | None, tuple | None, float]:
-    """One IMU message → (t s, (gyro xyz, acc xyz) in SI or None, mag xyz (message units) or None, temp °C).
-
-    Integer messages: gyro mrad/s and acc milli-g converted with the units above, mag left in counts (the
-    caller compares raw triples for sample-and-hold), temperature centi-°C (0 → NaN). HIGHRES_IMU: SI, the
-    parts not flagged in ``fields_updated`` are None; its temperature is held from its last update
-    (``hr_temp``)."""
-    if typ == "HIGHRES_IMU":
-        fu = int(msg.fields_updated) or 0xFFFF
-        t = msg.time_usec * 1e-6
-        temp = float(msg.temperature) if fu & HR_TEMP else hr_temp
-        imu = ((msg.xgyro, msg.ygyro, msg.zgyro, msg.xacc, msg.yacc, msg.zacc)
-               if fu & (HR_ACC | HR_GYRO) else None)
-        mag = (msg.xmag, msg.ymag, msg.zmag) if fu & HR_MAG else None
-        return t, imu, mag, temp
-    t = msg.time_usec * 1e-6 if typ == "RAW_IMU" else msg.time_boot_ms * 1e-3
-    temp_c = getattr(msg, "temperature", 0)
-    g, a = GYRO_UNIT, ACC_UNIT
-    imu = (msg.xgyro * g, msg.ygyro * g, msg.zgyro * g, msg.xacc * a, msg.yacc * a, msg.zacc * a)
-    return t, imu, (msg.xmag, msg.ymag, msg.zmag), temp_c * TEMP_UNIT if temp_c else float("nan")

@@ -1,7 +1,7 @@
 """CPU cost of the live filter: ``onlinecal run`` on a 400 Hz RAW_IMU stream over UDP on 127.0.0.1.
 
 A simulated flight (400 Hz IMU) is streamed in real time by the test vehicle
-(:func:`onlinecal.io.sender.send_session`, a thread of this process) to ``onlinecal run --connect
+(:func:`onlinecal.testing.sender.send_session`, a thread of this process) to ``onlinecal run --connect
 udpin:127.0.0.1:PORT`` (a subprocess, one per kernel backend: ``ONLINECAL_KERNELS=numba`` and ``numpy``).
 The receiving process's CPU time (user + system, from /proc/PID/stat: MAVLink decoding, buffering, the
 filter, checkpoints off) is sampled when its link opens, when the stream starts, 10 s into it and when it
@@ -46,7 +46,7 @@ def _free_port() -> int:
 
 
 def measure(data, backend: str, seconds: float, workdir: Path) -> dict[str, float]:  # type: ignore[no-untyped-def]
-    from onlinecal.io.sender import send_session
+    from onlinecal.testing.sender import send_session
 
     port = _free_port()
     out, err = workdir / f"{backend}.out", workdir / f"{backend}.err"
@@ -97,7 +97,7 @@ def decode_only(data, seconds: float) -> float:  # type: ignore[no-untyped-def]
     blocks consumed and dropped (no filter), the sender in another thread; the consuming thread's CPU time
     (``time.thread_time``) — what decoding, reordering and block assembly cost without the filter."""
     from onlinecal.io.live import LiveSource
-    from onlinecal.io.sender import send_session
+    from onlinecal.testing.sender import send_session
 
     port = _free_port()
     src = LiveSource(f"udpin:127.0.0.1:{port}", rate_hz=0, duration_s=seconds - 0.5)

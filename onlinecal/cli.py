@@ -48,7 +48,9 @@ class Unavailable(Exception):
 
 
 def _scales(a: argparse.Namespace) -> dict[str, Any]:
-    return {"acc_scale": a.acc_scale, "gyro_scale": a.gyro_scale, "mag_scale": a.mag_scale}
+    # --imu (helper io): the IMU instance, passed to every reader and to the live source with the scales
+    return {"acc_scale": a.acc_scale, "gyro_scale": a.gyro_scale, "mag_scale": a.mag_scale,
+            "imu": getattr(a, "imu", 0)}
 
 
 def _read_logs(paths: Sequence[str], a: argparse.Namespace) -> list[Any]:
@@ -290,6 +292,10 @@ def cmd_replay(a: argparse.Namespace) -> int:
     _check_out(a.trace, "--trace", dash=False)
     _check_out(a.report, "--report", directory=True)
     report = _report_dir(a.report) if a.report else None
+    if a.init != "batch" and report is None:
+        streamed = _replay_streamed(a)  # helper io: constant memory in the logs' length
+        if streamed is not None:
+            return streamed
     with bar(len(a.logs), desc="read", unit="logs") as pb:
         logs = []
         for p in a.logs:
@@ -330,6 +336,37 @@ def cmd_replay(a: argparse.Namespace) -> int:
           file=_human(a.json))
     _print_observability(res.calibration, _human(a.json))
     _wrote(res.calibration, health, a.json, report, written)
+    return _show_health(health, "online calibration")
+
+
+def _replay_streamed(a: argparse.Namespace) -> int | None:
+    """``replay`` without the batch step (helper io): every log streamed block by block through the filter
+    (onlinecal.ukf.replay.replay_stream), so memory does not grow with the logs' length. None when the start
+    calibration carries extensions that need whole logs (the caller then reads them whole)."""
+    from .io import open_log
+    from .progress import bar
+    from .report import truth_table
+    from .ukf.replay import replay_stream
+
+    init = None if a.init == "none" else _load_cal(a.init)
+    if init is not None and init.extensions:
+        return None
+    readers = [open_log(p, **_scales(a)) for p in a.logs]  # every file checked before the work starts
+    from .fleet import REPLAY_CHUNK
+
+    with bar(None, desc="replay", unit="samples") as pb:
+        def show(i: int, n: int) -> None:
+            pb.set(i)
+
+        res = replay_stream((r.blocks(REPLAY_CHUNK) for r in readers), init, chunk=REPLAY_CHUNK,
+                            trace_path=a.trace, on_progress=show)
+    for r in readers:
+        _warn([f"{r.path}: {w}" for w in r.warnings])
+    _warn(res.warnings)
+    health = online_health(res)
+    print(truth_table(None, init, res.calibration, labels=("init", "online")), file=_human(a.json))
+    _print_observability(res.calibration, _human(a.json))
+    _wrote(res.calibration, health, a.json, None, [])
     return _show_health(health, "online calibration")
 
 
@@ -405,6 +442,8 @@ def cmd_run(a: argparse.Namespace) -> int:
         raise Unavailable("live runs are not available in this build")
     if a.resume and not a.checkpoint:
         raise UsageError("--resume needs --checkpoint FILE")
+    if a.idle_timeout == float("inf"):
+        raise UsageError(f"--idle-timeout: must be a finite number of seconds >= 0, got {a.idle_timeout:g}")
     init = _load_cal(a.init) if a.init else None
     _check_out(a.json, "--json")
     _check_out(a.trace, "--trace", dash=False)
@@ -419,7 +458,11 @@ def cmd_run(a: argparse.Namespace) -> int:
     try:
         res = ukf.run_live(a.connect, init, duration_s=a.duration, json_out=json_file, trace_out=a.trace,
                            checkpoint=a.checkpoint, checkpoint_every_s=a.checkpoint_every, resume=a.resume,
-                           rate_hz=a.rate, apply=a.apply, transform=live_transform(init), **_scales(a))
+                           rate_hz=a.rate, apply=a.apply, transform=live_transform(init),
+                           idle_timeout_s=a.idle_timeout or None, source_system=a.sysid, source_component=a.compid,
+                           **_scales(a))
+        if init is not None and init.extensions and not res.calibration.extensions:
+            res.calibration = res.calibration.replace(extensions=init.extensions)
     except ImportError as e:
         raise Unavailable(str(e)) from e
     except OSError as e:  # the JSON, trace or checkpoint file cannot be written
@@ -650,6 +693,10 @@ def _add_scales(p: argparse.ArgumentParser) -> None:
                    help="multiplier from the log's gyro unit to rad/s (default: per format)")
     p.add_argument("--mag-scale", type=_scale_factor, default=None, metavar="K",
                    help="multiplier for the magnetometer (default: per format; any fixed unit works)")
+    # the IMU instance of multi-IMU logs and links
+    p.add_argument("--imu", type=_nonneg_int, default=0, metavar="N",
+                   help="IMU instance to read: .bin IMU I=N (IMU2/IMU3 in old logs), .tlog/link RAW_IMU or "
+                        "HIGHRES_IMU id N or SCALED_IMU/2/3, .ulg sensor topic instance N (default 0)")
 
 
 def _add_quiet(p: argparse.ArgumentParser) -> None:
@@ -684,6 +731,11 @@ _EXAMPLES = {
     "export": "examples: onlinecal export cal.json --format ardupilot --out cal.parm\n"
               "          onlinecal export cal.json --format px4 --onboard vehicle.params --out -",
 }
+
+
+def _nonneg_int(s: str) -> int:
+    """argparse type: an integer >= 0."""
+    return int(_SEED(s))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -762,6 +814,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=_POS, default=10.0, metavar="S",
                    help="wall seconds between checkpoints (default 10)")
     p.add_argument("--resume", action="store_true", help="continue from --checkpoint FILE")
+    # end of an idle link, and the vehicle to read when several send
+    p.add_argument("--idle-timeout", type=_NONNEG, default=10.0, metavar="S",
+                   help="end the run, with its result, after S seconds without IMU data (0: never; default 10)")
+    p.add_argument("--sysid", type=_nonneg_int, default=None, metavar="N",
+                   help="read the vehicle with this MAVLink system id (default: the first HEARTBEAT's)")
+    p.add_argument("--compid", type=_nonneg_int, default=None, metavar="N",
+                   help="... and this component id (default: the first one seen)")
     p.add_argument("--rate", type=_NONNEG, default=100.0, metavar="HZ",
                    help="RAW_IMU rate asked of the vehicle (SET_MESSAGE_INTERVAL; 0: ask nothing; default 100)")
     p.add_argument("--apply", choices=["ardupilot", "px4"], default=None,

@@ -7,7 +7,7 @@ import threading
 from typing import Any
 
 from onlinecal.io.base import ImuData
-from onlinecal.io.sender import send_session
+from onlinecal.testing.sender import send_session
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:

@@ -159,8 +159,16 @@ def test_clock_jumping_hours_ahead_is_kept_as_a_gap(tmp_path, sess):
     s_mag[km:] += 3 * 3600.0
     imu[:, 0], mag[:, 0] = _fmt(s_imu), _fmt(s_mag)
     d = read_log(write_rows(tmp_path / "hours.csv", sess, imu, mag))
-    assert d.n_imu == sess.n_imu and d.n_mag == sess.n_mag  # nothing dropped: the clock carries on
-    assert d.warnings == [gap_sentence("IMU", s_imu[k - 1], s_imu[k]), gap_sentence("mag", s_mag[km - 1], s_mag[km])]
+    # No IMU sample dropped: the clock carries on. A jump far beyond any gap seen is a clock segment
+    # (issue 16.2), and the mag samples stamped inside the IMU's silence are not used across it.
+    inside = (s_mag > s_imu[k - 1]) & (s_mag < s_imu[k])
+    assert d.n_imu == sess.n_imu and d.n_mag == sess.n_mag - inside.sum()
+    assert [b["cause"] for b in d.boundaries] == ["clock jump"]
+    assert s_imu[k - 1] < d.boundaries[0]["t"] < s_imu[k]
+    assert d.warnings[:2] == [gap_sentence("IMU", s_imu[k - 1], s_imu[k]),
+                              gap_sentence("mag", s_mag[km - 1], s_mag[km])]
+    assert d.warnings[2].startswith(f"the log's clock jumped forward from t={s_imu[k - 1]:.3f} s")
+    assert len(d.warnings) == 3 + bool(inside.sum())
     np.testing.assert_array_equal(d.t_imu, s_imu)
 
 
@@ -202,9 +210,14 @@ def test_gyro_cells_empty_for_a_stretch(tmp_path, sess):
     imu[gone, 1:4] = ""  # acc and temperature still there: a partial IMU sample
     d = read_log(write_rows(tmp_path / "gyroout.csv", sess, imu, mag))
     i0, i1 = np.flatnonzero(gone)[[0, -1]]
+    # The compass kept logging through the IMU's 2 s gap: those mag samples are not used across it (16.2).
+    inside = (sess.t_mag > sess.t_imu[i0 - 1]) & (sess.t_mag < sess.t_imu[i1 + 1])
     assert d.warnings == [f"dropped {gone.sum()} IMU rows with NaN, inf or missing values",
-                          gap_sentence("IMU", sess.t_imu[i0 - 1], sess.t_imu[i1 + 1])]
-    assert d.n_imu == sess.n_imu - gone.sum()
+                          gap_sentence("IMU", sess.t_imu[i0 - 1], sess.t_imu[i1 + 1]),
+                          f"dropped {inside.sum()} mag samples inside IMU gaps longer than 0.5 s (not used to "
+                          "update across the gap)"]
+    assert d.n_imu == sess.n_imu - gone.sum() and d.n_mag == sess.n_mag - inside.sum()
+    assert not np.any((d.t_mag > sess.t_imu[i0 - 1]) & (d.t_mag < sess.t_imu[i1 + 1]))
 
 
 def test_imu_reading_zeros_for_half_a_second(tmp_path, sess):
@@ -212,7 +225,11 @@ def test_imu_reading_zeros_for_half_a_second(tmp_path, sess):
     gone = (sess.t_imu >= 12.0) & (sess.t_imu < 12.5)
     imu[gone, 1:7] = "0"
     d = read_log(write_rows(tmp_path / "zeros.csv", sess, imu, mag))
-    assert d.warnings == [f"dropped {gone.sum()} IMU rows of all zeros (sensor dropout)"]  # 0.5 s: not a gap
+    i0, i1 = np.flatnonzero(gone)[[0, -1]]
+    inside = (sess.t_mag > sess.t_imu[i0 - 1]) & (sess.t_mag < sess.t_imu[i1 + 1])  # a 0.51 s IMU silence
+    assert d.warnings == [f"dropped {gone.sum()} IMU rows of all zeros (sensor dropout)",  # 0.5 s: not a gap
+                          f"dropped {inside.sum()} mag samples inside IMU gaps longer than 0.5 s (not used to "
+                          "update across the gap)"]
     assert d.n_imu == sess.n_imu - gone.sum() == sess.n_imu - 50
 
 
@@ -254,9 +271,9 @@ def test_wrong_format_behind_an_extension(tmp_path, sess):
         write_log(good[ext], sess)
     expect = {
         (".csv", ".tlog"): "not a MAVLink telemetry log?",
-        (".csv", ".bin"): "no DataFlash record in it (FMT or other); not an ArduPilot .bin log?",
+        (".csv", ".bin"): "(FMT or other); not an ArduPilot .bin log?",
         (".tlog", ".csv"): "first line is not a CSV header (binary data; not a .csv file?)",
-        (".tlog", ".bin"): "no DataFlash record in it (FMT or other); not an ArduPilot .bin log?",
+        (".tlog", ".bin"): "(FMT or other); not an ArduPilot .bin log?",
         (".bin", ".csv"): "first line is not a CSV header (binary data; not a .csv file?)",
         (".bin", ".tlog"): "not a MAVLink telemetry log?",
     }
@@ -329,6 +346,7 @@ def test_cli_batch_on_damaged_logs(tmp_path, sess):
         "warning: dropped 5 IMU rows with NaN, inf or missing values",
         f"warning: dropped {n_rep} IMU rows whose time did not increase ({n_rep} repeated)",
         "warning: dropped 1 IMU rows stamped ahead of the samples after them (a lone jump forward in time)",
+        "warning: dropped 25 mag samples inside IMU gaps longer than 0.5 s (not used to update across the gap)",
     ]
     kept = full.n_imu - drop.sum() - 5 - n_rep - 1
     assert f"batch pipeline: {kept} IMU samples" in out

@@ -286,7 +286,6 @@ def test_cli_batch_on_damaged_files_exits_2_with_one_line(bases, tmp_path):
         "noise.tlog": np.random.default_rng(3).bytes(20_000),
         "badfmt.bin": bytes(raw_bin),
         "len0.bin": bases["bin"][:89 + 4] + b"\x00" + bases["bin"][89 + 5:],
-        "row.csv": "".join(csv_lines).encode(),
         "binary.csv": bases["tlog"],
     }
     env = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -308,5 +307,4 @@ def test_cli_batch_on_damaged_files_exits_2_with_one_line(bases, tmp_path):
     assert "not a MAVLink telemetry log" in said["noise.tlog"]
     assert "Unsupported format char" in said["badfmt.bin"]
     assert ": byte 93: " not in said["len0.bin"] and ": byte 89: no IMU messages read" in said["len0.bin"]
-    assert ": line 41: column 'gyro_y': 'oops' is not a number" in said["row.csv"]
     assert ": line 1: first line is not a CSV header (binary data" in said["binary.csv"]

@@ -12,7 +12,8 @@ import pytest
 from onlinecal.io import ImuData, LogError, open_log, read_log, write_log
 from onlinecal.io.csv import COLUMNS, write_csv
 from onlinecal.io.dataflash import write_dataflash
-from onlinecal.io.tlog import G0, write_tlog
+from onlinecal.io.mavlink import G0
+from onlinecal.io.tlog import write_tlog
 
 DATA = Path(__file__).parents[1].parent / "shared" / "data"
 MARG = DATA / "marg-set1"
@@ -400,25 +401,46 @@ def test_csv_header_only_and_bad_headers(tmp_path):
     assert "no IMU samples" in _error(p)
 
 
-def test_csv_garbage_row_in_the_middle_names_the_line(tmp_path):
+def test_csv_garbage_row_in_the_middle_is_skipped_and_named(tmp_path):
+    """Issue 12/16.5: one malformed row no longer aborts the file; it is skipped with a counted warning that
+    names it. A file that is mostly malformed is still refused."""
     rows = [imu_row(0.01 * i) for i in range(1, 50)]
     rows[20] = "0.21,0.1,oops,0.3,0.1,0.2,9.8,,,,25"  # line 22 of the file (header is line 1)
+    rows[30] = "0.31,0.1,0.2"  # line 32: too few cells
+    rows[35] = imu_row(0.36) + ",1.0"  # line 37: an extra field
     p = tmp_path / "g.csv"
     p.write_text(csv_text(rows))
-    msg = _error(p)
-    assert "line 22" in msg and "'oops'" in msg and "gyro_y" in msg
-    rows[20] = "0.21,0.1,0.2"
+    d = read_log(p)
+    assert d.n_imu == 46 and 0.21 not in d.t_imu and 0.31 not in d.t_imu and 0.36 not in d.t_imu
+    said = [w for w in d.warnings if "malformed" in w]
+    assert len(said) == 1 and said[0].startswith("skipped 3 malformed rows (the first, line 22: column 'gyro_y'")
+    rows = [imu_row(0.01 * i) if i % 3 == 0 else "0.1,0.2" for i in range(1, 50)]
     p.write_text(csv_text(rows))
     msg = _error(p)
-    assert "line 22" in msg and "found 3" in msg
+    assert "33 of 49 rows malformed" in msg and "line 2" in msg and "found 2" in msg
 
 
-def test_csv_garbage_line_is_an_error_even_in_a_later_chunk(tmp_path):
+def test_csv_binary_tail_stops_reading_without_loading_it_as_a_line(tmp_path):
+    """A valid CSV followed by binary data (a pre-allocated logger file): the rows before are read, the tail
+    is not held as one line (before: 4.3 GB of memory for a 2 GB tail)."""
+    import tracemalloc
+
     rows = [imu_row(0.001 * i) for i in range(1, 10001)]
-    rows[9000] = "\x00\x01binary junk"
     p = tmp_path / "late.csv"
     p.write_text(csv_text(rows))
-    assert "line 9002" in _error(p)
+    with open(p, "ab") as f:
+        f.write(b"\x00" * (64 << 20))  # 64 MiB of zeros, no newline
+    tracemalloc.start()
+    d = read_log(p)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert d.n_imu == 10000
+    assert any("stopped reading at line 10002: binary data" in w for w in d.warnings)
+    assert peak < 32 << 20, peak  # far less than the 64 MiB tail
+    rows[9000] = "\x00\x01binary junk"  # binary in the middle: the rows before it are kept
+    p.write_text(csv_text(rows))
+    d = read_log(p)
+    assert d.n_imu == 9000 and any("line 9002" in w for w in d.warnings)
 
 
 def test_csv_truncated_last_line_is_dropped_with_a_warning(tmp_path):
@@ -433,8 +455,9 @@ def test_csv_truncated_last_line_is_dropped_with_a_warning(tmp_path):
     p.write_text(csv_text(rows) + imu_row(0.11))  # complete, merely no final newline: kept
     d = read_log(p)
     assert d.n_imu == 11 and d.warnings == []
-    p.write_text(csv_text(rows) + "0.11,0.01,-0.0\n")  # same short line WITH a newline: an error
-    assert "line 12" in _error(p)
+    p.write_text(csv_text(rows) + "0.11,0.01,-0.0\n")  # same short line WITH a newline: a malformed row
+    d = read_log(p)
+    assert d.n_imu == 10 and any("skipped 1 malformed rows (the first, line 12" in w for w in d.warnings)
 
 
 def test_csv_nan_inf_and_missing_cells_drop_that_sensor_sample(tmp_path):

@@ -16,8 +16,8 @@ from netutil import Sender, free_port
 
 from onlinecal.io.base import ImuData, LogError
 from onlinecal.io.live import LiveSource
-from onlinecal.io.sender import fault_schedule, send_session
 from onlinecal.sim.sensors import simulate
+from onlinecal.testing.sender import fault_schedule, send_session
 
 G0 = 9.80665
 WATCHDOG_S = 15.0  # no single stream in this file may take longer
@@ -246,9 +246,10 @@ def test_udpout_receiver_reaches_udpin_vehicle(session: ImuData) -> None:
     assert src.stats["ack"] >= 1
 
 
-def test_vehicle_clock_restart_is_joined(session: ImuData) -> None:
+def test_vehicle_clock_restart_is_a_new_segment(session: ImuData) -> None:
     """A reboot mid-stream: time_usec starts again near 0. The time line continues instead of every later
-    sample being dropped as late."""
+    sample being dropped as late, and (issue 16.2) not as a splice: a 2 s segment gap and a boundary on the
+    block that holds it, so the filter restarts the attitude there."""
     port = free_port()
     url = f"udpout:127.0.0.1:{port}"
     first, again = session.slice_imu(0, 600), session.slice_imu(0, 400)  # the second boot's clock restarts
@@ -267,9 +268,15 @@ def test_vehicle_clock_restart_is_joined(session: ImuData) -> None:
     assert out.n_imu == first.n_imu + again.n_imu
     assert np.all(np.diff(out.t_imu) > 0)
     dt = np.diff(out.t_imu)
-    assert np.allclose(dt, 0.01, atol=1e-6)  # joined one sample period after the last one
+    k = first.n_imu - 1
+    assert np.allclose(np.delete(dt, k), 0.01, atol=1e-6) and dt[k] == pytest.approx(2.0, abs=1e-6)
+    assert [b["cause"] for b in out.boundaries] == ["clock restart"]
+    assert out.t_imu[k] < out.boundaries[0]["t"] < out.t_imu[k + 1]
+    assert out.boundaries[0]["before_s"] == pytest.approx(first.t_imu[-1], abs=1e-6)
+    assert out.boundaries[0]["after_s"] == pytest.approx(again.t_imu[0], abs=1e-6)
+    assert src.boundaries == out.boundaries
     assert np.allclose(out.gyro[first.n_imu:], again.gyro, atol=0.5e-3 + 1e-12)
-    assert any("clock went back" in w for w in out.warnings)
+    assert any("clock went back" in w and "new segment" in w for w in out.warnings)
 
 
 def test_close_from_another_thread_ends_stream_and_hands_on_what_is_held(session: ImuData) -> None:

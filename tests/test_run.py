@@ -26,10 +26,10 @@ from onlinecal.cli import main
 from onlinecal.io import write_log
 from onlinecal.io.base import ImuData
 from onlinecal.io.live import LiveSource
-from onlinecal.io.sender import fault_schedule
 from onlinecal.io.tlog import TlogReader
 from onlinecal.model import PARAMS, SENSORS, Calibration
 from onlinecal.sim.sensors import simulate
+from onlinecal.testing.sender import fault_schedule
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}

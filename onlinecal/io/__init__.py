@@ -1,5 +1,6 @@
 """Log readers and writers, chosen by file extension: ``.csv`` (flat schema), ``.tlog`` (MAVLink
-telemetry), ``.bin`` (ArduPilot DataFlash). Every reader streams :class:`ImuData` blocks and raises
+telemetry), ``.bin`` (ArduPilot DataFlash),
+``.ulg`` (PX4 ULog, read only). Every reader streams :class:`ImuData` blocks and raises
 only :class:`LogError` for unusable input; the shared drop policy is in :mod:`onlinecal.io.validate`.
 """
 
@@ -17,7 +18,7 @@ __all__ = [
     "read_log", "write_csv", "write_dataflash", "write_log", "write_tlog",
 ]
 
-EXTENSIONS = (".csv", ".tlog", ".bin")
+EXTENSIONS = (".csv", ".tlog", ".bin", ".ulg")
 
 
 def _ext(path: str | Path) -> str:
@@ -25,29 +26,38 @@ def _ext(path: str | Path) -> str:
 
 
 def open_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
-             mag_scale: float | None = None) -> LogReader:
+             mag_scale: float | None = None, imu: int = 0) -> LogReader:
     """A streaming reader for ``path`` chosen by its extension (.csv, .tlog, .bin).
 
     The scales multiply the raw values in place of the format's default unit conversion (see
     :mod:`onlinecal.io.tlog`, :mod:`onlinecal.io.dataflash`); for CSV, whose columns are already in
     SI units, a given scale multiplies the column values. Raises LogError for an unknown extension, a
-    missing or empty file, or (CSV) an unusable header.
+    missing or empty file, or (CSV) an unusable header. ``imu``: the IMU instance to read from a multi-IMU
+    log (.bin: IMU ``I``/IMU2/IMU3; .tlog: RAW_IMU/HIGHRES_IMU id, SCALED_IMU/2/3; .ulg: the sensor topics'
+    multi-instance); a CSV holds one IMU (``imu`` must be 0).
     """
     ext = _ext(path)
     if ext == ".csv":
+        if imu:
+            raise LogError(str(path), f"a CSV log holds one IMU; --imu {imu} is for .bin/.tlog/.ulg logs")
         return CsvReader(path, acc_scale, gyro_scale, mag_scale)
     if ext == ".tlog":
-        return TlogReader(path, acc_scale, gyro_scale, mag_scale)
+        return TlogReader(path, acc_scale, gyro_scale, mag_scale, imu=imu)
     if ext == ".bin":
-        return DataflashReader(path, acc_scale, gyro_scale, mag_scale)
+        return DataflashReader(path, acc_scale, gyro_scale, mag_scale, imu=imu)
+    if ext == ".ulg":
+        from onlinecal.io.ulog import UlogReader
+
+        return UlogReader(path, acc_scale, gyro_scale, mag_scale, imu=imu)
     raise LogError(str(path), f"unknown log format {ext or '(no extension)'!r}; expected one of "
                    f"{', '.join(EXTENSIONS)}")
 
 
 def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
-             mag_scale: float | None = None, max_samples: int = 1 << 16) -> ImuData:
-    """The whole log as one ImuData (the concatenation of the reader's blocks), warnings included."""
-    reader = open_log(path, acc_scale, gyro_scale, mag_scale)
+             mag_scale: float | None = None, max_samples: int = 1 << 16, imu: int = 0) -> ImuData:
+    """The whole log as one ImuData (the concatenation of the reader's blocks), warnings, clock-segment
+    boundaries, parameters and series included."""
+    reader = open_log(path, acc_scale, gyro_scale, mag_scale, imu=imu)
     data = ImuData.concat(reader.blocks(max_samples), source=str(path))
     data.warnings = list(reader.warnings)
     return data

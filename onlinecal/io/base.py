@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,6 +48,17 @@ class ImuData:
     t_imu (N,) s · gyro (N, 3) rad/s · acc (N, 3) m/s² · temp (N,) °C (NaN if absent)
     t_mag (M,) s · mag (M, 3) sensor unit · source: file it came from · warnings: what the reader
     dropped or repaired, one sentence each.
+
+    boundaries: clock-segment boundaries (a vehicle reboot that restarted the clock, or a jump forward far
+    beyond the gaps seen), each a dict with ``t`` (s, on this data's time line: the samples at or after it
+    belong to the new segment; a restarted clock is shifted so the time line keeps increasing, with a gap),
+    ``cause`` ("clock restart" | "clock jump"), ``before_s``/``after_s`` (the raw stamps either side).
+    A consumer re-initialises the attitude at each and carries the calibration over
+    (:func:`split_boundaries`). A streamed block that starts a new segment carries its boundary with
+    ``t`` ≤ its first time.
+    params: the log's firmware parameters (name → value; DataFlash PARM, ULog parameters), empty when the
+    log has none. series: optional per-log series (name → (t (K,) s, values (K,))), e.g. ``current`` A,
+    ``throttle`` 0..1, ``armed`` 0/1, empty when absent.
     """
 
     t_imu: Array
@@ -58,6 +69,9 @@ class ImuData:
     mag: Array
     source: str = ""
     warnings: list[str] = field(default_factory=list)
+    boundaries: list[dict[str, Any]] = field(default_factory=list)
+    params: dict[str, float] = field(default_factory=dict)
+    series: dict[str, tuple[Array, Array]] = field(default_factory=dict)
 
     @classmethod
     def empty(cls, source: str = "") -> ImuData:
@@ -110,7 +124,7 @@ class ImuData:
             m = np.zeros(self.n_mag, bool)
         return ImuData(
             t, self.gyro[i0:i1], self.acc[i0:i1], self.temp[i0:i1], self.t_mag[m], self.mag[m],
-            self.source, list(self.warnings),
+            self.source, list(self.warnings), params=self.params,
         )
 
     @staticmethod
@@ -120,10 +134,20 @@ class ImuData:
         if not bl:
             return ImuData.empty(source or "")
         warnings: list[str] = []
+        bounds: list[dict[str, Any]] = []
+        params: dict[str, float] = {}
+        series: dict[str, list[tuple[Array, Array]]] = {}
         for b in bl:
             for w in b.warnings:
                 if w not in warnings:
                     warnings.append(w)
+            for s in b.boundaries:
+                if all(s["t"] != o["t"] for o in bounds):
+                    bounds.append(dict(s))
+            params.update(b.params)
+            for k, v in b.series.items():
+                series.setdefault(k, []).append(v)
+        joined = {k: (np.concatenate([a for a, _ in v]), np.concatenate([b for _, b in v])) for k, v in series.items()}
         return ImuData(
             np.concatenate([b.t_imu for b in bl]),
             np.concatenate([b.gyro for b in bl]).reshape(-1, 3),
@@ -133,7 +157,35 @@ class ImuData:
             np.concatenate([b.mag for b in bl]).reshape(-1, 3),
             source if source is not None else bl[0].source,
             warnings,
+            sorted(bounds, key=lambda s: s["t"]),
+            params,
+            joined,
         )
+
+
+def split_boundaries(data: ImuData) -> list[tuple[bool, ImuData]]:
+    """``data`` cut at its clock-segment boundaries: [(starts_new_segment, piece), ...] in time order.
+
+    A piece holds the IMU samples with time in [boundary, next boundary) and the mag samples of the same
+    span (a mag sample is never fed across a boundary). ``starts_new_segment`` is True for every piece
+    that follows a boundary (including a streamed block whose boundary lies before its first sample), so
+    the caller restarts the attitude there. The pieces carry no boundaries themselves.
+    """
+    if not data.boundaries:
+        return [(False, data)]
+    cuts = sorted(float(b["t"]) for b in data.boundaries)
+    edges = [-np.inf, *cuts, np.inf]
+    out: list[tuple[bool, ImuData]] = []
+    for k in range(len(edges) - 1):
+        lo, hi = edges[k], edges[k + 1]
+        mi = (data.t_imu >= lo) & (data.t_imu < hi)
+        mm = (data.t_mag >= lo) & (data.t_mag < hi)
+        if k == 0 and not mi.any() and not mm.any():
+            continue  # a block that starts with its boundary: nothing before it
+        piece = ImuData(data.t_imu[mi], data.gyro[mi], data.acc[mi], data.temp[mi], data.t_mag[mm], data.mag[mm],
+                        data.source, data.warnings, params=data.params, series=data.series)
+        out.append((k > 0, piece))
+    return out
 
 
 class LogReader(Protocol):

@@ -7,11 +7,16 @@ Columns (matched by name, any order, header line required)::
 ``mag_x..z`` (all three) and ``temp_c`` may be absent. Other columns are ignored. A row carries an IMU
 sample (gyro+acc, temperature optional), a mag sample, or both; cells of a sensor not sampled at that
 row are empty. Errors name ``line N`` with N the line number in the file (the header is line 1).
+
+Malformed rows (a wrong number of cells, a cell that is not a number) are skipped and counted in a warning
+naming the first; a file with more malformed rows than good ones is refused (LogError naming the first).
+Lines are read with a length limit: a line longer than :data:`_LINE_LIMIT` or holding NUL/control bytes
+starts a binary tail (a pre-allocated logger file padded with zeros, say): reading stops there with a
+warning, and the tail is never held in memory as one line.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 import operator
 import re
@@ -32,6 +37,7 @@ TEMP = "temp_c"
 COLUMNS = (TIME, *GYRO, *ACC, *MAG, TEMP)
 
 _HEADER_LIMIT = 1 << 16  # a header longer than this is not a header (e.g. a binary file)
+_LINE_LIMIT = 1 << 12  # characters: a data row of 11 numbers is ~250; longer is binary data
 _BINARY = re.compile("[\x00-\x08\x0e-\x1f\x7f\ufffd]")  # NUL, control characters, undecodable bytes
 
 
@@ -51,6 +57,7 @@ class CsvReader:
         # unit conversion of the integer formats).
         self.scale = {k: 1.0 if v is None else float(v)
                       for k, v in (("acc", acc_scale), ("gyro", gyro_scale), ("mag", mag_scale))}
+        self._si_units = acc_scale is None and gyro_scale is None
         check_file(self.path)  # the same words as the other formats for a missing, empty or directory path
         with self._open() as f:
             self._names, self._col = self._read_header(f)
@@ -109,17 +116,22 @@ class CsvReader:
         Raises LogError for malformed rows (naming the line) and, at the end, for a log that is
         unusable as a whole (see :mod:`onlinecal.io.validate`).
         """
-        filt = SampleFilter(self.path, unit="rows", lookahead=LOOKAHEAD, gaps=True)
+        filt = SampleFilter(self.path, unit="rows", lookahead=LOOKAHEAD, gaps=True,
+                            limits=self._si_units)
         self.warnings = filt.warnings
-        asm = BlockAssembler(self.path, filt.warnings, max_samples)
+        asm = BlockAssembler(self.path, filt.warnings, max_samples, filt)
         # Lines hold IMU or mag samples, so read a bit more than one block's worth per chunk.
         chunk = int(min(max(2 * max_samples, 4096), 1 << 16))
         empty_rows = 0
+        self._bad = 0
+        self._bad_first: tuple[int, str] | None = None
+        self._rows = 0
         with self._open() as f:
             self._read_header(f)
             lineno = 1  # line number of the last line read
-            while True:
-                lines = list(itertools.islice(f, chunk))
+            tail = False
+            while not tail:
+                lines, tail = self._read_lines(f, chunk, lineno)
                 if not lines:
                     break
                 first = lineno + 1
@@ -133,9 +145,38 @@ class CsvReader:
                 yield from asm.pop()
         if empty_rows:
             filt.note(f"skipped {empty_rows} rows with no sensor values")
+        if self._bad and self._bad_first is not None:
+            line, problem = self._bad_first
+            if 2 * self._bad > self._rows:
+                raise LogError(self.path, f"{self._bad} of {self._rows} rows malformed; the first: {problem}",
+                               f"line {line}")
+            filt.note(f"skipped {self._bad} malformed rows (the first, line {line}: {problem})")
+        if tail:
+            filt.note(f"stopped reading at line {lineno + 1}: binary data (NUL or control bytes, or a line over "
+                      f"{_LINE_LIMIT} characters) from there on, e.g. a pre-allocated logger file's padding")
         asm.add(*filt.flush())
         filt.finish()
         yield from asm.pop(final=True)
+
+    @staticmethod
+    def _read_lines(f: IO[str], chunk: int, lineno: int) -> tuple[list[str], bool]:
+        """Up to ``chunk`` lines, each read with a length limit; (lines, binary tail reached). The line that
+        starts a binary tail is not returned."""
+        out: list[str] = []
+        readline = f.readline
+        for _ in range(chunk):
+            line = readline(_LINE_LIMIT)
+            if not line:
+                return out, False
+            if (len(line) >= _LINE_LIMIT and not line.endswith("\n")) or _BINARY.search(line):
+                return out, True
+            out.append(line)
+        return out, False
+
+    def _malformed(self, line: int, problem: str) -> None:
+        self._bad += 1
+        if self._bad_first is None or line < self._bad_first[0]:  # cell checks come after count checks
+            self._bad_first = (line, problem)
 
     def _parse(self, lines: list[str], first: int, filt: SampleFilter) -> tuple[Array, np.ndarray]:
         """Lines → values (n, k) of the k known columns, NaN where empty, and the empty mask (n, k)."""
@@ -151,16 +192,23 @@ class CsvReader:
                 linenos.append(first + k)
         if not rows:
             return np.zeros((0, len(self._keep))), np.zeros((0, len(self._keep)), bool)
+        self._rows += len(rows)
         counts = [s.count(",") for s in rows]
         if any(c != ncol - 1 for c in counts):
-            bad = next(i for i, c in enumerate(counts) if c != ncol - 1)
-            problem = f"expected {ncol} comma-separated columns, found {counts[bad] + 1}"
-            if not (truncated and bad == len(rows) - 1):
-                raise LogError(self.path, problem, f"line {linenos[bad]}")
-            filt.note(f"dropped line {linenos[bad]}, the last, cut short without a trailing newline "
-                      f"({problem})")
-            rows.pop()
-            linenos.pop()
+            bad = [i for i, c in enumerate(counts) if c != ncol - 1]
+            if truncated and bad[-1] == len(rows) - 1:
+                problem = f"expected {ncol} comma-separated columns, found {counts[-1] + 1}"
+                filt.note(f"dropped line {linenos[-1]}, the last, cut short without a trailing newline "
+                          f"({problem})")
+                self._rows -= 1
+                bad.pop()
+                rows.pop()
+                linenos.pop()
+            for i in bad:
+                self._malformed(linenos[i], f"expected {ncol} comma-separated columns, found {counts[i] + 1}")
+            drop = set(bad)
+            rows = [r for i, r in enumerate(rows) if i not in drop]
+            linenos = [n for i, n in enumerate(linenos) if i not in drop]
             if not rows:
                 return np.zeros((0, len(self._keep))), np.zeros((0, len(self._keep)), bool)
         if self._getter is not None:
@@ -175,6 +223,7 @@ class CsvReader:
         ncol = len(self._keep)
         vals = np.full((len(rows), ncol), np.nan)
         empty = np.zeros((len(rows), ncol), bool)
+        good = np.ones(len(rows), bool)
         for r, s in enumerate(rows):
             for c, cell in enumerate(s.split(",")):
                 cell = cell.strip()
@@ -191,9 +240,12 @@ class CsvReader:
                     if truncated and r == len(rows) - 1:
                         filt.note(f"dropped line {linenos[r]}, the last, cut short without a trailing "
                                   f"newline ({problem})")
-                        return vals[:r], empty[:r]
-                    raise LogError(self.path, problem, f"line {linenos[r]}") from None
-        return vals, empty
+                        self._rows -= 1
+                    else:
+                        self._malformed(linenos[r], f"{problem}")
+                    good[r] = False
+                    break
+        return vals[good], empty[good]
 
     def _split(self, vals: Array, empty: np.ndarray):
         """Parsed rows → (IMU arrays, mag arrays or None, number of rows with no sensor values)."""

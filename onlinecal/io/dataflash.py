@@ -2,9 +2,16 @@
 
 Read through pymavlink's DFReader:
 
-* ``IMU`` — TimeUS µs, GyrX/Y/Z rad/s, AccX/Y/Z m/s², T °C; instance ``I`` == 0 only (logs from
-  before the ``I`` field name the second IMU ``IMU2``, which is not read).
-* ``MAG`` — TimeUS µs, MagX/Y/Z milligauss (× 1e-3 → gauss); instance 0 only.
+* ``IMU`` — TimeUS µs, GyrX/Y/Z rad/s, AccX/Y/Z m/s², T °C; the instance ``imu`` (field ``I``; logs from
+  before the ``I`` field name the second and third IMU ``IMU2``/``IMU3``, read as instances 1 and 2).
+* ``MAG`` — TimeUS µs, MagX/Y/Z milligauss (× 1e-3 → gauss); instance 0, the primary compass, whatever
+  the IMU instance (a compass is its own chip; old logs name the others ``MAG2``/``MAG3``).
+* ``PARM`` — Name, Value: ``ImuData.params`` (the firmware's parameters at the time, e.g. its own
+  calibration INS_ACCOFFS_X, COMPASS_OFS_X, ...). When they hold a non-default calibration a warning says
+  that the logged values are already corrected by it.
+* Optional series (``ImuData.series``, on the last block): ``current`` A (BAT/CURR ``Curr``), ``throttle``
+  0..1 (CTUN ``ThO``, else RCOU ``C3`` PWM 1000-2000 µs), ``armed`` 0/1 (ARM ``ArmState``, else EV ids 10
+  ARMED / 11 DISARMED).
 
 ``acc_scale``/``gyro_scale``/``mag_scale`` replace the default multipliers (1, 1, 1e-3).
 
@@ -30,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file
+from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
 HEAD = b"\xa3\x95"
 FMT_ID = 0x80
@@ -40,9 +47,30 @@ MAG_ID = 101
 FMT_FORMAT = ("FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
 IMU_FORMAT = ("IMU", "QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz")
 MAG_FORMAT = ("MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S")
-_NP = {"Q": "<u8", "B": "u1", "f": "<f4", "I": "<u4", "H": "<u2", "h": "<i2"}
+_NP = {"Q": "<u8", "q": "<i8", "B": "u1", "b": "i1", "M": "u1", "f": "<f4", "d": "<f8", "I": "<u4", "i": "<i4",
+       "H": "<u2", "h": "<i2", "n": "S4", "N": "S16", "Z": "S64"}  # DataFlash format characters
 _SKIPPED = re.compile(r"Skipped (\d+) bad bytes")
 _IMU_FIELDS = ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ")
+_OLD_NAMES = {"IMU2": ("IMU", 1), "IMU3": ("IMU", 2), "MAG2": ("MAG", 1), "MAG3": ("MAG", 2)}
+_READ = ["IMU", "IMU2", "IMU3", "MAG", "MAG2", "MAG3", "PARM", "BAT", "CURR", "CTUN", "RCOU", "ARM", "EV"]
+_EV_ARMED, _EV_DISARMED = 10, 11  # ArduPilot LogEvent ids
+# The firmware's own calibration: (parameter prefix, its default); a value off the default means the logged
+# IMU/MAG values were corrected with it.
+_CAL_DEFAULTS = (("INS_ACCOFFS", 0.0), ("INS_ACC2OFFS", 0.0), ("INS_ACC3OFFS", 0.0), ("INS_ACCSCAL", 1.0),
+                 ("INS_ACC2SCAL", 1.0), ("INS_ACC3SCAL", 1.0), ("INS_GYROFFS", 0.0), ("INS_GYR2OFFS", 0.0),
+                 ("INS_GYR3OFFS", 0.0), ("COMPASS_OFS", 0.0), ("COMPASS_DIA", 1.0), ("COMPASS_ODI", 0.0),
+                 ("COMPASS_OFS2", 0.0), ("COMPASS_OFS3", 0.0), ("COMPASS_MOT", 0.0))
+
+
+def calibration_params(params: dict[str, float]) -> dict[str, float]:
+    """The firmware-calibration parameters among ``params`` that are off their default (INS_ACCOFFS_*,
+    INS_ACCSCAL_*, INS_GYROFFS_*, COMPASS_OFS_*, COMPASS_DIA_*, COMPASS_ODI_*, ... as ArduPilot names them)."""
+    out = {}
+    for name, v in params.items():
+        for prefix, default in _CAL_DEFAULTS:
+            if name.startswith(prefix + "_") and abs(float(v) - default) > 1e-9:
+                out[name] = float(v)
+    return out
 _MAG_FIELDS = ("MagX", "MagY", "MagZ")
 
 
@@ -97,9 +125,9 @@ def _guarded_reader_class() -> type:
 
             def _parse_next(self) -> Any:
                 while True:
-                    start = self.offset
+                    start = int(getattr(self, "offset"))  # noqa: B009 - pymavlink's untyped attribute
                     m = super()._parse_next()
-                    if m is None or self.offset > start:
+                    if m is None or int(getattr(self, "offset")) > start:  # noqa: B009
                         return m
                     self.stalls += 1
                     self.offset = start + 1
@@ -110,24 +138,30 @@ def _guarded_reader_class() -> type:
 
 
 class DataflashReader:
-    """Streaming reader of IMU instance 0 and MAG instance 0 of one DataFlash ``.bin`` log."""
+    """Streaming reader of one IMU instance (``imu``, default 0) and its MAG of one DataFlash ``.bin`` log."""
 
     def __init__(self, path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
-                 mag_scale: float | None = None) -> None:
+                 mag_scale: float | None = None, imu: int = 0) -> None:
         self.path = str(path)
+        self.imu = int(imu)
         self.warnings: list[str] = []
         self.scale = {
             "acc": 1.0 if acc_scale is None else float(acc_scale),
             "gyro": 1.0 if gyro_scale is None else float(gyro_scale),
             "mag": 1e-3 if mag_scale is None else float(mag_scale),
         }
+        self._si_units = acc_scale is None and gyro_scale is None
         check_file(self.path)
+        # A DataFlash log starts with its FMT records: one must be in the first megabytes.
+        probe_head(self.path, lambda head: HEAD + bytes([FMT_ID]) in head,
+                   "no DataFlash record in {span} (FMT or other); not an ArduPilot .bin log?")
 
     def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
         """Yield ImuData blocks of at most ``max_samples`` IMU samples, in log order."""
-        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True)
+        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True,
+                            limits=self._si_units)
         self.warnings = filt.warnings
-        asm = BlockAssembler(self.path, filt.warnings, max_samples)
+        asm = BlockAssembler(self.path, filt.warnings, max_samples, filt)
         skipped = 0
         try:
             with _captured_output(fd_level=True):
@@ -136,7 +170,8 @@ class DataflashReader:
             raise LogError(self.path, f"not a readable DataFlash log: {type(e).__name__}: {e}") from None
         stalls0 = dfr.stalls  # those of the constructor's own passes over the log are counted again below
         unindexed = _unindexed_from(dfr)
-        batch = _Batch(self.path)
+        batch = _Batch(self.path, self.imu)
+        asm.params = batch.params  # filled as PARM records are read (they come first in a log)
         flush_every = max(1, min(max_samples, 1 << 14))
         try:
             done = False
@@ -163,8 +198,19 @@ class DataflashReader:
             if not _n_records(dfr):
                 raise LogError(self.path, "no DataFlash record in it (FMT or other); not an ArduPilot .bin log?")
             raise LogError(self.path, "no IMU messages in the log")
+        if batch.n_imu_read == 0:
+            have = sorted({int(x.split()[-1]) for x in batch.other if x.startswith("IMU")})
+            raise LogError(self.path, f"no IMU instance {self.imu} in the log (instances: "
+                           f"{', '.join(map(str, have)) or 'none'}); pick one with --imu N")
         if batch.other:
-            filt.note(f"read IMU and MAG instance 0; ignored {', '.join(sorted(batch.other))}")
+            filt.note(f"read IMU instance {self.imu} and MAG instance 0; ignored {', '.join(sorted(batch.other))}")
+        onboard = calibration_params(batch.params)
+        if onboard:
+            shown = ", ".join(f"{k}={v:g}" for k, v in list(onboard.items())[:6])
+            filt.note(f"the log's parameters hold the firmware's own calibration ({shown}"
+                      f"{', ...' if len(onboard) > 6 else ''}): the logged IMU/MAG values are already corrected "
+                      f"by it, so a calibration fitted here is a residual on top of it")
+        asm.series = batch.series()
         if skipped:
             filt.note(f"skipped {skipped} corrupt bytes that pymavlink could not parse")
         if dfr.stalls > stalls0:
@@ -186,52 +232,101 @@ class DataflashReader:
 
 
 class _Batch:
-    """Rows of IMU/MAG instance 0 read from a DFReader since the last flush, and running counts."""
+    """Rows of the chosen IMU/MAG instance read from a DFReader since the last flush, and running counts."""
 
-    def __init__(self, path: str) -> None:
+    def __init__(self, path: str, imu: int = 0) -> None:
         self.path = path
+        self.want = imu
         self.imu: list[tuple] = []  # (t s, gyro xyz, acc xyz, T)
         self.mag: list[tuple] = []  # (t s, mag xyz in file units)
         self.other: set[str] = set()  # instances seen and not read
         self.n_msg = 0
         self.n_imu_msg = 0
+        self.n_imu_read = 0
         self.mag_unusable = ""  # why MAG messages are not read, once one proved unreadable
+        self.params: dict[str, float] = {}
+        self._series: dict[str, list[tuple[float, float]]] = {}
+        self._throttle_from: str | None = None
+        self._armed_from: str | None = None
+
+    def series(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        out = {}
+        for k, rows in self._series.items():
+            a = np.asarray(rows, np.float64).reshape(-1, 2)
+            out[k] = (a[:, 0], a[:, 1])
+        return out
+
+    def _aux(self, typ: str, m: Any) -> None:
+        """PARM and the optional series; a record lacking the fields is skipped (other firmware versions)."""
+        if typ == "PARM":
+            name, value = getattr(m, "Name", None), getattr(m, "Value", None)
+            if isinstance(name, str) and value is not None and np.isfinite(float(value)):
+                self.params[name] = float(value)
+            return
+        t = _time_s(m)
+        if typ in ("BAT", "CURR") and getattr(m, "Curr", None) is not None:
+            if typ == "BAT" and int(getattr(m, "Inst", getattr(m, "Instance", 0)) or 0) != 0:
+                return
+            self._series.setdefault("current", []).append((t, float(m.Curr)))
+        elif typ == "CTUN" and getattr(m, "ThO", None) is not None and self._throttle_from in (None, "CTUN"):
+            self._throttle_from = "CTUN"
+            self._series.setdefault("throttle", []).append((t, float(m.ThO)))
+        elif typ == "RCOU" and getattr(m, "C3", None) is not None and self._throttle_from in (None, "RCOU"):
+            self._throttle_from = "RCOU"
+            self._series.setdefault("throttle", []).append((t, min(max((float(m.C3) - 1000.0) / 1000.0, 0.0),
+                                                                   1.0)))
+        elif typ == "ARM" and getattr(m, "ArmState", None) is not None:
+            if self._armed_from != "ARM":  # ARM is the direct record: it replaces what EV said
+                self._armed_from = "ARM"
+                self._series["armed"] = []
+            self._series["armed"].append((t, float(bool(m.ArmState))))
+        elif typ == "EV" and self._armed_from in (None, "EV") and getattr(m, "Id", None) in (_EV_ARMED,
+                                                                                               _EV_DISARMED):
+            self._armed_from = "EV"
+            self._series.setdefault("armed", []).append((t, float(m.Id == _EV_ARMED)))
 
     def read(self, dfr: Any, limit: int) -> bool:
         """Read until ``limit`` rows are held; True when the log has ended."""
         while len(self.imu) + len(self.mag) < limit:
             where = f"byte {getattr(dfr, 'offset', '?')}, message {self.n_msg + 1}"
             try:
-                m = dfr.recv_match(type=["IMU", "MAG"])
+                m = dfr.recv_match(type=_READ)
             except Exception as e:
                 raise LogError(self.path, f"pymavlink failed: {type(e).__name__}: {e}", where) from None
             if m is None:
                 return True
             self.n_msg += 1
             typ = m.get_type()
-            if typ == "MAG" and self.mag_unusable:
+            if typ not in ("IMU", "IMU2", "IMU3", "MAG", "MAG2", "MAG3"):
+                with contextlib.suppress(Exception):  # a damaged optional record never stops the log
+                    self._aux(typ, m)
+                continue
+            base, old_inst = _OLD_NAMES.get(typ, (typ, None))
+            if base == "MAG" and self.mag_unusable:
                 continue
             try:
-                inst = _instance(m)
+                inst = _instance(m) if old_inst is None else old_inst
                 t = _time_s(m)
-                if typ == "IMU":
+                if base == "IMU":
                     self.n_imu_msg += 1
-                    if inst == 0:
-                        temp = float(getattr(m, "T", float("nan")))
+                    if inst == self.want:
+                        self.n_imu_read += 1
+                        temp = float(getattr(m, "T", getattr(m, "Temp", float("nan"))))
                         self.imu.append((t, *(float(getattr(m, f)) for f in _IMU_FIELDS), temp))
                     else:
                         self.other.add(f"IMU instance {inst}")
-                elif inst == 0:
-                    self.mag.append((t, *(float(getattr(m, f)) for f in _MAG_FIELDS)))
                 else:
-                    self.other.add(f"MAG instance {inst}")
+                    if inst == 0:
+                        self.mag.append((t, *(float(getattr(m, f)) for f in _MAG_FIELDS)))
+                    else:
+                        self.other.add(f"MAG instance {inst}")
             except Exception as e:  # pymavlink's field access on a corrupt FMT: AttributeError, IndexError, ...
                 # Fields come from the FMT record, so every message of this type is alike: a broken
                 # schema, not one bad message. IMU is required; MAG is optional and is then not read.
                 where = f"byte {getattr(dfr, 'offset', '?')}, message {self.n_msg}"  # the message's end
                 problem = (f"{typ} message without a usable field ({type(e).__name__}: {e}); its FMT record "
                            f"is corrupt or not ArduPilot's")
-                if typ == "IMU":
+                if base == "IMU":
                     raise LogError(self.path, problem, where) from None
                 self.mag_unusable = f"{problem}, first at {where}"
         return False

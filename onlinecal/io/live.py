@@ -2,7 +2,12 @@
 
 :class:`LiveSource` opens any pymavlink connection string, asks the vehicle for RAW_IMU at ``rate_hz``
 (COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL, once a vehicle HEARTBEAT names its system and component) and
-turns the RAW_IMU messages of one source (system, component, IMU id 0) into blocks in time order.
+turns the IMU messages of one source into blocks in time order. The source: the vehicle (system, component)
+given (``source_system``/``source_component``) or else the first vehicle HEARTBEAT's (others named in a
+warning); its IMU instance ``imu`` (RAW_IMU/HIGHRES_IMU ``id``, SCALED_IMU = 0, SCALED_IMU2 = 1,
+SCALED_IMU3 = 2), as RAW_IMU (ArduPilot) or, when the vehicle sends none, HIGHRES_IMU (PX4 has no RAW_IMU
+stream) or SCALED_IMU*: the first type seen, replaced by a better one (RAW_IMU, then HIGHRES_IMU) that
+arrives before any sample was handed on.
 
 Units, as in ``onlinecal.io.tlog`` (ArduPilot's RAW_IMU): ``time_usec`` µs → t s (vehicle boot time),
 acc milli-g → m/s², gyro mrad/s → rad/s, mag mgauss → gauss, temperature c°C → °C (0 = "not provided"
@@ -21,8 +26,13 @@ What the link does to packets and what is done about it:
   it happened somewhere in the gap (``mag_uncertain``);
 * silence for ``reconnect_s`` (or a socket error, or TCP EOF): the connection is closed and opened
   again, and the rate request is sent again (``reconnects``);
-* a vehicle clock that restarts (reboot: ``time_usec`` back near 0 for many packets in a row) is
-  joined on: later times are shifted to continue after the last emitted sample, with a warning.
+* a vehicle clock that restarts (reboot: ``time_usec`` back near 0 for many packets in a row) is a new
+  clock segment: later times are shifted to continue :data:`onlinecal.io.validate.SEGMENT_GAP_S` after the last
+  emitted sample and the block holding the boundary carries it in ``ImuData.boundaries`` (the consumer
+  restarts the attitude there), with a warning;
+* the end: ``timeout_s`` s without an IMU message of the source (``onlinecal run --idle-timeout``);
+  ``duration_s`` counts the data's own time, where a jump of the stamps forward (a burst of corrupt stamps)
+  counts as at most 10 sample periods, so it cannot end a run early.
 
 The IMU samples then go through the shared input policy (``onlinecal.io.validate.SampleFilter``:
 all-zero or non-finite readings dropped, with warnings), as for a log file.
@@ -45,17 +55,32 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.sender import ACC_UNIT, GYRO_UNIT, MAG_UNIT, MAV_CMD_SET_MESSAGE_INTERVAL, mavutil_v2
-from onlinecal.io.validate import SampleFilter
+from onlinecal.io.mavlink import (
+    ACC_UNIT,
+    GYRO_UNIT,
+    HR_ACC,
+    HR_GYRO,
+    HR_MAG,
+    HR_TEMP,
+    MAG_UNIT,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_COMP_ID_MISSIONPLANNER,
+    MSG_ID,
+    mavutil_v2,
+)
+from onlinecal.io.validate import SEGMENT_GAP_S, SampleFilter
 
-RAW_IMU_ID = 27
-_GCS_COMPONENT = 190  # MAV_COMP_ID_MISSIONPLANNER: what a ground station calls itself
+RAW_IMU_ID = MSG_ID["RAW_IMU"]
+_GCS_COMPONENT = MAV_COMP_ID_MISSIONPLANNER  # what a ground station calls itself
 _SCHEMES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcpin:", "tcp:", "uds:", "unix:", "mcast:",
             "ws:", "wss:", "wsserver:")
 _LOG_SUFFIXES = (".tlog", ".bin", ".log", ".csv", ".px4log", ".mavlink", ".raw")
 _REQUEST_TRIES = 3  # SET_MESSAGE_INTERVAL attempts per connection, one second apart
 _RESET_BEHIND_S = 1.0  # a packet this far behind the last emitted one may be a restarted vehicle clock
 _RECV_BATCH = 1000  # messages handled before the block/stop checks run again
+_JUMP_CAP_S = 1.0  # the data time a jump forward adds before a sample period is known (then 10 periods)
+_RCVBUF = 1 << 24  # bytes asked for the UDP receive buffer (the kernel caps it at net.core.rmem_max)
+_TYPE_RANK = {"RAW_IMU": 0, "HIGHRES_IMU": 1, "SCALED_IMU": 2, "SCALED_IMU2": 2, "SCALED_IMU3": 2}
 
 
 class _LinkLost(Exception):
@@ -110,6 +135,9 @@ class LiveSource:
     s of data after which the stream ends (None: never). ``acc_scale``/``gyro_scale``/``mag_scale``:
     m/s², rad/s, gauss per RAW_IMU count (defaults milli-g, mrad/s, mgauss).
 
+    ``imu``: IMU instance to read. ``source_system``/``source_component``: the vehicle to read (None: the
+    first vehicle HEARTBEAT's, or the first IMU source's; other sources are named in a warning).
+
     ``stats`` (live dict): received (RAW_IMU packets of the source), emitted, lost (IMU samples missing
     from the time line: gaps of k sample periods count k − 1), mag (samples emitted), mag_uncertain (mag
     changes first seen right after lost packets, so of unknown time: not used),
@@ -123,7 +151,8 @@ class LiveSource:
     def __init__(self, url: str, rate_hz: float = 200.0, block_s: float = 0.25, reorder_window: int = 32,
                  reconnect_s: float = 2.0, timeout_s: float | None = None, duration_s: float | None = None,
                  acc_scale: float | None = None, gyro_scale: float | None = None,
-                 mag_scale: float | None = None) -> None:
+                 mag_scale: float | None = None, imu: int = 0, source_system: int | None = None,
+                 source_component: int | None = None) -> None:
         if not rate_hz >= 0 or not block_s > 0 or not reconnect_s > 0 or reorder_window < 0:
             raise ValueError("need rate_hz >= 0, block_s > 0, reconnect_s > 0, reorder_window >= 0")
         self.url = self.path = str(url)
@@ -133,14 +162,27 @@ class LiveSource:
         self.reconnect_s = float(reconnect_s)
         self.timeout_s = timeout_s
         self.duration_s = duration_s
+        self.mag_scale = mag_scale
+        self._user_units = acc_scale is not None or gyro_scale is not None
         self.units = {"acc": ACC_UNIT if acc_scale is None else float(acc_scale),
                       "gyro": GYRO_UNIT if gyro_scale is None else float(gyro_scale),
                       "mag": MAG_UNIT if mag_scale is None else float(mag_scale)}
+        self.imu = int(imu)
+        self.want_system = source_system
+        self.want_component = source_component
+        self._imu_type: str | None = None  # the message type read (RAW_IMU, HIGHRES_IMU, SCALED_IMU*)
+        self._others: set[tuple[int, int]] = set()  # IMU sources seen and not read
+        self._hr_temp = float("nan")
+        self._hr_mag: tuple = (0.0, 0.0, 0.0)
+        self.boundaries: list[dict[str, Any]] = []  # clock segments met (all of them, for the result)
+        self._pending_bounds: list[dict[str, Any]] = []  # not yet handed on with a block
+        self._data_us = 0.0  # the data's own time, what duration_s counts (forward jumps capped)
+        self._segment_start = False  # the next emitted sample starts a clock segment
         self.warnings: list[str] = []
         self.stats: dict[str, Any] = dict(
             received=0, emitted=0, lost=0, mag=0, mag_uncertain=0, duplicates=0, reordered=0, dropped_late=0,
             reconnects=0, ack=0, ack_result=None, interval_requests=0, heartbeats=0, ignored=0, bad_data=0,
-            clock_resets=0, stop_reason=None)
+            clock_resets=0, resyncs=0, stop_reason=None)
         self._mavutil = mavutil_v2()
         self._mavlink = self._mavutil.mavlink
         self._lock = threading.Lock()  # the connection is used by blocks() and closed by close()
@@ -200,8 +242,11 @@ class LiveSource:
         port = getattr(conn, "port", None)
         if isinstance(port, socket.socket) and port.type == socket.SOCK_DGRAM:
             # Bursts (Wi-Fi telemetry, a fast replay) overflow the default UDP buffer; best effort.
+            # Junk datagrams take buffer space too: a large buffer keeps them from crowding out valid ones
+            # while the parser works through them.
             with contextlib.suppress(OSError):
-                port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+                port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _RCVBUF)
+            self._datagram_framing(conn)
         if hasattr(conn, "handle_eof"):
             # pymavlink's TCP client prints and carries on reading an EOF socket (busy loop); make the
             # loss visible so the link is re-opened at once.
@@ -211,6 +256,32 @@ class LiveSource:
             conn.handle_eof = lost
             conn.handle_disconnect = lost
         return conn
+
+    def _datagram_framing(self, conn: Any) -> None:
+        """A UDP datagram holds whole MAVLink packets, but pymavlink parses a link as one byte stream: a junk
+        datagram holding a start-of-frame byte makes the parser wait for the rest of that "frame" and eat the
+        next, valid, datagram with it (measured: 4000 junk datagrams cost 56 % of 2000 valid packets). So an
+        unfinished frame left over from an earlier datagram is dropped before the next datagram is read,
+        once the packets still complete in the buffer were taken (counted in ``stats['resyncs']``)."""
+        orig = conn.recv
+        mav = conn.mav
+        seen: list[int | None] = [None]  # the buffer length last handed back to the parser unchanged
+
+        def recv(n: int | None = None) -> Any:
+            pending = mav.buf_len()
+            if pending and pending != seen[0]:
+                seen[0] = pending
+                return b""  # let the parser take what is complete in its buffer first
+            if pending:  # nothing more came of it: the remains of a junk datagram
+                mav.buf = bytearray()
+                mav.buf_index = 0
+                mav.expected_length = 8  # HEADER_LEN_V1 + 2: the parser's own reset value
+                mav.have_prefix_error = False
+                self.stats["resyncs"] += 1
+            seen[0] = None
+            return orig(n)
+
+        conn.recv = recv
 
     def _drop_link(self) -> None:
         if self._link is not None:
@@ -247,7 +318,7 @@ class LiveSource:
             last_us, offset_us = int(pos["last_us"]), int(pos["offset_us"])
             first_us = None if pos.get("first_us") is None else int(pos["first_us"])
             mag = pos.get("mag")
-            mag_t = None if mag is None else tuple(int(v) for v in mag)
+            mag_t = None if mag is None else tuple(float(v) for v in mag)
             period = pos.get("period_us")
             period_us = None if period is None else float(period)
         except (KeyError, TypeError, ValueError) as e:
@@ -260,7 +331,10 @@ class LiveSource:
         self._prev_mag = mag_t
         self._period_us = period_us
         self._taken_us = float(last_us)
-        self._pos = {"last_us": last_us, "offset_us": offset_us, "first_us": first_us,
+        data = pos.get("data_us")
+        self._data_us = float(data) if data is not None else float(last_us - first_us) if first_us is not None \
+            else 0.0
+        self._pos = {"last_us": last_us, "offset_us": offset_us, "first_us": first_us, "data_us": self._data_us,
                      "mag": None if mag_t is None else list(mag_t), "period_us": period_us}
 
     def __enter__(self) -> LiveSource:
@@ -383,18 +457,34 @@ class LiveSource:
         link.last_msg = time.monotonic()
         link.got_any = True
         typ = msg.get_type()
-        if typ == "RAW_IMU":
+        if typ in _TYPE_RANK:
             key = (msg.get_srcSystem(), msg.get_srcComponent())
-            if int(getattr(msg, "id", 0) or 0) != 0:
+            if not self._is_source(link, key):
                 self.stats["ignored"] += 1
-                self._note("RAW_IMU of other IMU ids ignored (id 0 is used)")
+                if key not in self._others:
+                    self._others.add(key)
+                    shown = ", ".join(f"system {a} component {b}" for a, b in sorted(self._others))
+                    self._note(f"IMU messages of other vehicles or components ignored ({shown}); reading system "
+                               f"{self._source[0] if self._source else '?'} component "
+                               f"{self._source[1] if self._source else '?'} (pick one with --sysid/--compid)")
                 return
-            if self._source is None and (link.vehicle is None or link.vehicle[0] == key[0]):
-                self._source = key
-            if key != self._source:
+            inst = int(getattr(msg, "id", 0) or 0) if typ in ("RAW_IMU", "HIGHRES_IMU") else \
+                {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}[typ]
+            if inst != self.imu:
                 self.stats["ignored"] += 1
-                self._note("RAW_IMU of other systems or components ignored (the first one seen is used)")
+                self._note(f"IMU messages of other instances ignored (instance {self.imu} is read)")
                 return
+            if self._imu_type != typ:
+                better = self._imu_type is None or (_TYPE_RANK[typ] < _TYPE_RANK[self._imu_type]
+                                                    and self.stats["emitted"] == 0)
+                if not better:
+                    self.stats["ignored"] += 1
+                    return
+                if self._imu_type is not None:  # nothing handed on yet: start over with the better type
+                    self._heap.clear()
+                    self._in_heap.clear()
+                    self._max_us = -1
+                self._imu_type = typ
             self._last_data = link.last_msg
             self._accept(msg)
         elif typ == "HEARTBEAT":
@@ -413,15 +503,54 @@ class LiveSource:
         elif typ == "BAD_DATA":
             self.stats["bad_data"] += 1
 
+    def _is_source(self, link: _Link, key: tuple[int, int]) -> bool:
+        """Is ``key`` (system, component) the vehicle read? Chosen once: the one asked for, else the first
+        vehicle HEARTBEAT's system, else the first IMU source."""
+        if self._source is None:
+            if self.want_system is not None and key[0] != self.want_system:
+                return False
+            if self.want_component is not None and key[1] != self.want_component:
+                return False
+            if self.want_system is None and link.vehicle is not None and link.vehicle[0] != key[0]:
+                return False
+            self._source = key
+        return key == self._source
+
     # -- ordering ---------------------------------------------------------------------------------
+    def _fields(self, msg: Any) -> tuple[int, tuple] | None:
+        """(raw µs, (acc xyz m/s², gyro xyz rad/s, mag xyz in message units, temperature °C, mag unit)) of an
+        IMU message of the type read; None for a HIGHRES_IMU without new IMU fields."""
+        typ = self._imu_type
+        u = self.units
+        if typ == "HIGHRES_IMU":
+            fu = int(msg.fields_updated) or 0xFFFF
+            if fu & HR_TEMP:
+                self._hr_temp = float(msg.temperature)
+            if not fu & (HR_ACC | HR_GYRO):
+                return None
+            si = 1.0 if not self._user_units else None
+            ga, gg = (1.0, 1.0) if si else (u["acc"], u["gyro"])
+            if fu & HR_MAG:
+                self._hr_mag = (msg.xmag, msg.ymag, msg.zmag)
+            mag = self._hr_mag  # held from its last update, like RAW_IMU's sample-and-hold
+            return int(msg.time_usec), (msg.xacc * ga, msg.yacc * ga, msg.zacc * ga, msg.xgyro * gg,
+                                        msg.ygyro * gg, msg.zgyro * gg, *mag, self._hr_temp,
+                                        1.0 if self.mag_scale is None else u["mag"])
+        raw = int(msg.time_usec) if typ == "RAW_IMU" else int(msg.time_boot_ms) * 1000
+        temp_c = getattr(msg, "temperature", 0)
+        a, g = u["acc"], u["gyro"]
+        return raw, (msg.xacc * a, msg.yacc * a, msg.zacc * a, msg.xgyro * g, msg.ygyro * g, msg.zgyro * g,
+                     msg.xmag, msg.ymag, msg.zmag, temp_c * 0.01 if temp_c else np.nan, u["mag"])
+
     def _accept(self, msg: Any) -> None:
         st = self.stats
         st["received"] += 1
         if self._full:
             return
-        raw = int(msg.time_usec)
-        fields = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro, msg.xmag, msg.ymag,
-                  msg.zmag, getattr(msg, "temperature", 0))
+        got = self._fields(msg)
+        if got is None:
+            return
+        raw, fields = got
         us = raw + self._offset_us
         if us <= self._last_us:
             if us in self._recent_set:
@@ -464,13 +593,20 @@ class LiveSource:
         Continue the time line one sample period after the last emitted sample."""
         self._flush_heap()
         behind, self._behind = sorted(self._behind), []
-        step = self._last_dt_us or (round(1e6 / self.rate_hz) if self.rate_hz else 1000)
-        shift = self._last_us + step - (behind[0][0] + self._offset_us)
+        gap_us = round(SEGMENT_GAP_S * 1e6)
+        shift = self._last_us + gap_us - (behind[0][0] + self._offset_us)
+        bound = {"t": (self._last_us + gap_us / 2) * 1e-6, "cause": "clock restart",
+                 "before_s": (self._last_us - self._offset_us) * 1e-6, "after_s": behind[0][0] * 1e-6,
+                 "shift_s": (self._offset_us + shift) * 1e-6}
         self._offset_us += shift
         self._max_us = self._last_us
+        self._segment_start = True  # the segment gap is neither a sample period nor data time
         self.stats["clock_resets"] += 1
-        self._note(f"the vehicle clock went back {shift * 1e-6:.3f} s (reboot?) {self.stats['clock_resets']} "
-                   "time(s): later samples are shifted to continue the time line")
+        self.boundaries.append(bound)
+        self._pending_bounds.append(bound)
+        self._note(f"the vehicle clock went back {shift * 1e-6 - SEGMENT_GAP_S:.3f} s (reboot?) "
+                   f"{self.stats['clock_resets']} time(s): a new segment each time (attitude restarted, "
+                   f"calibration carried over), later samples shifted onto the time line")
         for raw, fields in behind:
             us = raw + self._offset_us
             if us > self._last_us and us not in self._in_heap:
@@ -486,11 +622,9 @@ class LiveSource:
             return
         if self._first_us is None:
             self._first_us = us
-        ax, ay, az, gx, gy, gz, mx, my, mz, temp_c = fields
+        ax, ay, az, gx, gy, gz, mx, my, mz, temp, m = fields
         t = us * 1e-6
-        g, a, m = self.units["gyro"], self.units["acc"], self.units["mag"]
-        self._imu_rows.append((t, gx * g, gy * g, gz * g, ax * a, ay * a, az * a,
-                               temp_c * 0.01 if temp_c else np.nan, us, mx, my, mz))
+        self._imu_rows.append((t, gx, gy, gz, ax, ay, az, temp, us, mx, my, mz))
         mag = (mx, my, mz)
         if mag != self._prev_mag:
             if mag == (0, 0, 0):
@@ -507,14 +641,20 @@ class LiveSource:
         if self._block_wall is None:
             self._block_wall = time.monotonic()
         if self._last_us >= 0:
-            self._last_dt_us = us - self._last_us
+            step = us - self._last_us
+            cap = 10.0 * self._last_dt_us if self._last_dt_us else _JUMP_CAP_S * 1e6
+            if not self._segment_start:  # a segment's gap is no data; a jump forward counts as at most cap
+                self._data_us += min(step, cap)
+            if step < cap and not self._segment_start:
+                self._last_dt_us = step
+        self._segment_start = False
         self._last_us = us
         self._recent.append(us)
         self._recent_set.add(us)
         if len(self._recent) > self._recent_max:
             self._recent_set.discard(self._recent.popleft())
         self.stats["emitted"] += 1
-        if self.duration_s is not None and (us - self._first_us) * 1e-6 >= self.duration_s:
+        if self.duration_s is not None and self._data_us * 1e-6 >= self.duration_s:
             self._full = True
 
     # -- blocks -----------------------------------------------------------------------------------
@@ -546,14 +686,19 @@ class LiveSource:
         if a.shape[0]:
             self._count_lost(a[:, 8])
             self._pos = {"last_us": int(a[-1, 8]), "offset_us": self._offset_us, "first_us": self._first_us,
-                         "mag": [int(v) for v in a[-1, 9:12]], "period_us": self._period_us}
+                         "data_us": self._data_us,
+                         "mag": [float(v) for v in a[-1, 9:12]], "period_us": self._period_us}
         t, gyro, acc, temp = self._filter.imu(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7])
         tm, mag = self._filter.mag(b[:, 0], b[:, 1:4])
         self.stats["mag"] += int(tm.size)
         self._update_warnings()
+        t_end = t[-1] if t.size else (tm[-1] if tm.size else -np.inf)
+        bounds = [b for b in self._pending_bounds if b["t"] <= t_end]
+        if bounds:
+            self._pending_bounds = [b for b in self._pending_bounds if b["t"] > t_end]
         if not t.size and not tm.size:
             return None
-        return ImuData(t, gyro, acc, temp, tm, mag, self.url, self.warnings)
+        return ImuData(t, gyro, acc, temp, tm, mag, self.url, self.warnings, [dict(b) for b in bounds])
 
     def _count_lost(self, us: np.ndarray) -> None:
         """Samples missing between the IMU times ``us`` (µs, one block in order) and the block before: a gap

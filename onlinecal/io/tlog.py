@@ -1,8 +1,10 @@
 """MAVLink telemetry logs (``.tlog``): read IMU messages in bounded blocks, and write RAW_IMU logs.
 
 A tlog is a sequence of ``[8-byte big-endian µs wall-clock timestamp][MAVLink packet]``. The reader
-takes ONE IMU source: RAW_IMU with id 0 if the log has it, else the first IMU source seen (message
-type, id, system, component). The choice is made from the first ``_DECIDE_AFTER`` IMU messages (kept
+takes ONE IMU source (message type, instance, system, component): of IMU instance ``imu`` (default 0:
+RAW_IMU/HIGHRES_IMU ``id``, SCALED_IMU = 0, SCALED_IMU2 = 1, SCALED_IMU3 = 2), RAW_IMU if the log has it,
+else HIGHRES_IMU (what PX4 streams), else SCALED_IMU*; with ``imu`` = 0 and none of instance 0, the first
+source seen. The choice is made from the first ``_DECIDE_AFTER`` IMU messages (kept
 in memory until then) so the log is read once; other sources are named in a warning.
 
 Units (defaults; ``acc_scale``/``gyro_scale``/``mag_scale`` replace the multiplier):
@@ -33,11 +35,11 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file
+from onlinecal.io.mavlink import ACC_UNIT, GYRO_UNIT, IMU_MESSAGES, MAG_UNIT, SCALED_INSTANCE, mavutil_v2
+from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
-G0 = 9.80665
-IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "HIGHRES_IMU")
-_INT_UNITS = {"acc": G0 * 1e-3, "gyro": 1e-3, "mag": 1e-3}  # RAW_IMU / SCALED_IMU*
+__all__ = ["IMU_MESSAGES", "TlogReader", "mavutil_v2", "write_tlog"]
+_INT_UNITS = {"acc": ACC_UNIT, "gyro": GYRO_UNIT, "mag": MAG_UNIT}  # RAW_IMU / SCALED_IMU*
 _SI_UNITS = {"acc": 1.0, "gyro": 1.0, "mag": 1.0}  # HIGHRES_IMU
 _DECIDE_AFTER = 1000  # IMU messages looked at before settling for a source other than RAW_IMU id 0
 _TLOG_EPOCH_US = 1_700_000_000_000_000  # wall-clock base of written tlog timestamps (2023-11-14)
@@ -45,37 +47,25 @@ _INT16 = (-32768, 32767)
 _NOT_MESSAGES = ("MAV", "HOME", "BAD_DATA")  # entries of pymavlink's ``messages`` that are not a message read
 
 
-def mavutil_v2() -> Any:
-    """pymavlink's mavutil with the MAVLink 2 parser (which also reads MAVLink 1 packets).
-
-    pymavlink switches to MAVLink 2 itself only when the very first packet of a file is MAVLink 2
-    (and then sets MAVLINK20 for the whole process); a tlog starting with a v1 packet would lose its
-    later v2 packets. Selecting v2 up front is the same global switch, made deterministic.
-    """
-    os.environ.setdefault("MAVLINK20", "1")
-    from pymavlink import mavutil
-
-    if getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "1.0") != "2.0":
-        mavutil.set_dialect(mavutil.current_dialect or "ardupilotmega")
-    return mavutil
-
-
 class TlogReader:
     """Streaming reader of the IMU (and the magnetometer it carries) in one MAVLink ``.tlog``."""
 
     def __init__(self, path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
-                 mag_scale: float | None = None) -> None:
+                 mag_scale: float | None = None, imu: int = 0) -> None:
         self.path = str(path)
+        self.imu = int(imu)
         self.warnings: list[str] = []
         self.scale_override = {"acc": acc_scale, "gyro": gyro_scale, "mag": mag_scale}
         self.source: str | None = None  # the IMU source read, e.g. "RAW_IMU id 0 (system 1)"
         check_file(self.path)
+        probe_head(self.path, _has_mavlink, "no MAVLink message in {span}; not a MAVLink telemetry log?")
 
     def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
         """Yield ImuData blocks of at most ``max_samples`` IMU samples, in log order."""
-        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True)
+        filt = SampleFilter(self.path, unit="messages", lookahead=LOOKAHEAD, gaps=True,
+                            limits=self.scale_override["acc"] is None and self.scale_override["gyro"] is None)
         self.warnings = filt.warnings
-        asm = BlockAssembler(self.path, filt.warnings, max_samples)
+        asm = BlockAssembler(self.path, filt.warnings, max_samples, filt)
         mavutil = mavutil_v2()
         try:
             conn = mavutil.mavlogfile(self.path, robust_parsing=True)
@@ -106,8 +96,8 @@ class TlogReader:
                     seen[key] = _describe(key)
                 if chosen is None:
                     pending.append((key, msg))
-                    if (typ == "RAW_IMU" and key[3] == 0) or len(pending) >= _DECIDE_AFTER:
-                        chosen = key if typ == "RAW_IMU" and key[3] == 0 else next(iter(seen))
+                    if (typ == "RAW_IMU" and key[3] == self.imu) or len(pending) >= _DECIDE_AFTER:
+                        chosen = self._choose(seen)
                         for k, m in pending:
                             if k == chosen:
                                 st.add(m, k[2])
@@ -118,7 +108,7 @@ class TlogReader:
                     self._flush(st, filt, asm)
                     yield from asm.pop()
             if chosen is None and seen:
-                chosen = next(iter(seen))
+                chosen = self._choose(seen)
                 for k, m in pending:
                     if k == chosen:
                         st.add(m, k[2])
@@ -136,6 +126,7 @@ class TlogReader:
             shown = ", ".join(kinds[:8]) + (", ..." if len(kinds) > 8 else "")
             raise LogError(self.path, f"no IMU messages ({', '.join(IMU_MESSAGES)}) in the log; it holds {shown}")
         self._flush(st, filt, asm)
+        assert chosen is not None  # seen is not empty, so a source was chosen
         self.source = seen[chosen]
         others = [d for k, d in seen.items() if k != chosen]
         if others:
@@ -148,6 +139,18 @@ class TlogReader:
         asm.add(*filt.flush())
         filt.finish()
         yield from asm.pop(final=True)
+
+    def _choose(self, seen: dict[tuple, str]) -> tuple:
+        """The source of instance ``imu``: RAW_IMU, else HIGHRES_IMU, else SCALED_IMU*; LogError if the log has
+        no IMU of that instance (``imu`` = 0: the first source seen)."""
+        rank = {"RAW_IMU": 0, "HIGHRES_IMU": 1}
+        mine = sorted((k for k in seen if k[3] == self.imu), key=lambda k: rank.get(k[2], 2))
+        if mine:
+            return mine[0]
+        if self.imu == 0:
+            return next(iter(seen))
+        raise LogError(self.path, f"no IMU instance {self.imu} in the log (it holds {', '.join(seen.values())}); "
+                       f"pick one with --imu N")
 
     @staticmethod
     def _flush(st: _State, filt: SampleFilter, asm: BlockAssembler) -> None:
@@ -207,11 +210,29 @@ class _State:
         return imu, (b[:, 0], b[:, 1:4] * units["mag"])
 
 
+def _has_mavlink(head: bytes) -> bool:
+    """Does ``head`` hold one MAVLink packet with a valid checksum (of a message this dialect knows)? Tried
+    at the first 2000 start-of-frame bytes (0xFD v2, 0xFE v1), each with a fresh parser."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    arr = np.frombuffer(head, np.uint8)
+    for p in np.flatnonzero((arr == 0xFD) | (arr == 0xFE))[:2000].tolist():
+        mav = mavlink2.MAVLink(None)
+        mav.robust_parsing = True
+        try:
+            msgs = mav.parse_buffer(head[p:p + 280]) or []
+        except Exception:  # pymavlink's own failures on a bad frame: try the next start byte
+            continue
+        if any(m.get_type() != "BAD_DATA" and not m.get_type().startswith("UNKNOWN_") for m in msgs):
+            return True
+    return False
+
+
 def _source_key(msg: Any, typ: str) -> tuple:
     if typ in ("RAW_IMU", "HIGHRES_IMU"):
         inst = int(getattr(msg, "id", 0) or 0)
     else:
-        inst = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}[typ]
+        inst = SCALED_INSTANCE[typ]
     return (msg.get_srcSystem(), msg.get_srcComponent(), typ, inst)
 
 
@@ -247,8 +268,8 @@ def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
     if t.size and (not np.all(np.isfinite(t)) or t.min() < 0):
         raise ValueError("write_tlog needs finite, non-negative IMU times")
     usec = np.rint(t * 1e6).astype(np.int64)
-    acc = _q16(data.acc, G0 * 1e-3)
-    gyro = _q16(data.gyro, 1e-3)
+    acc = _q16(data.acc, ACC_UNIT)
+    gyro = _q16(data.gyro, GYRO_UNIT)
     temp = np.nan_to_num(np.asarray(data.temp, np.float64), nan=0.0)
     temp_c = np.clip(np.rint(temp * 100.0), *_INT16).astype(np.int64)
     temp_c[(temp_c == 0) & np.isfinite(data.temp)] = 1

@@ -32,7 +32,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from ..io.base import ImuData, LogError
+from ..io.base import ImuData, LogError, split_boundaries
+from ..io.mavlink import MAV_PARAM_TYPE_INT32
 from ..model import Calibration
 from .filter import OnlineCalibrator, UKFConfig
 from .replay import OnlineResult
@@ -41,7 +42,6 @@ CHECKPOINT_SCHEMA = "onlinecal.live-checkpoint/1"
 # Link counters that add up over the runs of one calibration (a resumed run continues them).
 _COUNTERS = ("received", "emitted", "lost", "mag", "mag_uncertain", "duplicates", "reordered", "dropped_late",
              "reconnects", "ack", "interval_requests", "heartbeats", "ignored", "bad_data", "clock_resets")
-_MAV_PARAM_TYPE_INT32 = 6
 _END = object()  # end of the link reader's queue
 
 
@@ -143,7 +143,7 @@ class _Trace:
         if new:
             self.fields = list(rows[0].keys())
         with self.path.open("a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=self.fields, extrasaction="ignore")
+            w = csv.DictWriter(fh, fieldnames=self.fields or [], extrasaction="ignore")
             if new:
                 w.writeheader()
             w.writerows(rows)
@@ -170,7 +170,9 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
              apply: str | None = None, status_every_s: float | None = None,
              acc_scale: float | None = None, gyro_scale: float | None = None, mag_scale: float | None = None,
              source_options: dict[str, Any] | None = None, log: TextIO | None = None,
-             transform: Callable[[ImuData], ImuData] | None = None) -> LiveResult:
+             transform: Callable[[ImuData], ImuData] | None = None, idle_timeout_s: float | None = 10.0,
+             imu: int = 0, source_system: int | None = None,
+             source_component: int | None = None) -> LiveResult:
     """Calibrate online from the live link ``url`` until ``duration_s`` s of vehicle time (from the first
     sample, across resumes), or Ctrl-C / SIGTERM, which end the run cleanly with a result.
 
@@ -185,6 +187,12 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
     30 s otherwise; 0: none). ``source_options``: more LiveSource arguments (``reorder_window``,
     ``reconnect_s``, ``block_s``, ``timeout_s``). ``transform``: applied to every block before the filter
     sees it, on the filter's thread (the model extensions' per-block corrections, ``apply_ext.live_transform``).
+    ``idle_timeout_s``: the run ends, with its result, after this many seconds without an IMU message (None:
+    never; a LogError when nothing arrived at all). ``imu``: IMU instance; ``source_system``/
+    ``source_component``: the vehicle read when several send (default: the first vehicle HEARTBEAT's).
+    A vehicle clock restart (reboot, also between a checkpoint and ``resume``) is a clock segment: the
+    attitude restarts there, the calibration carries over, and the result names it in
+    ``meta["online"]["segments"]``.
 
     Raises LogError when the link cannot be opened, the checkpoint is unusable, or no sample arrived.
     """
@@ -214,12 +222,15 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
         cal = OnlineCalibrator(init, config)
     base = dict(ck["link"]) if ck else {}
     resumes = int(base.get("resumes", 0)) + (1 if ck else 0)
-    fed = dict(ck["fed"]) if ck else {"imu": 0, "t_first": None, "t_last": None}
+    fed: dict[str, Any] = dict(ck["fed"]) if ck else {"imu": 0, "t_first": None, "t_last": None}
     trace = _Trace(trace_out, resume=ck is not None)
 
     opts = dict(source_options or {})
+    opts.setdefault("timeout_s", idle_timeout_s)
     src = LiveSource(url, rate_hz=rate_hz, duration_s=duration_s, acc_scale=acc_scale, gyro_scale=gyro_scale,
-                     mag_scale=mag_scale, **opts)
+                     mag_scale=mag_scale, imu=imu, source_system=source_system, source_component=source_component,
+                     **opts)
+    segments: list[dict[str, Any]] = list(ck.get("segments", [])) if ck else []
     if ck is not None:
         try:
             src.resume_from(ck["source"])
@@ -245,7 +256,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
         trace.add(cal.trace_rows(clear=True))  # rows go to the CSV, not into every checkpoint
         payload = {"schema": CHECKPOINT_SCHEMA, "written": datetime.now(UTC).isoformat(),
                    "url": url, "rate_hz": rate_hz, "duration_s": duration_s, "source": pos,
-                   "link": link_stats(), "fed": fed, "filter": cal.get_state()}
+                   "link": link_stats(), "fed": fed, "segments": segments, "filter": cal.get_state()}
         write_atomic(checkpoint, json.dumps(payload))
         n_ckpt += 1
 
@@ -256,7 +267,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
         stopped.append(signum)
         src.stop()
 
-    old: dict[int, Any] = {}
+    old: dict[signal.Signals, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             old[sig] = signal.signal(sig, on_signal)
@@ -296,7 +307,11 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
                 if item is not None:
                     block, pos = item
                     if block.n_imu or block.n_mag:
-                        cal.feed(transform(block) if transform is not None else block)
+                        segments += [dict(b) for b in block.boundaries]
+                        for new_segment, piece in split_boundaries(block):
+                            if new_segment:
+                                cal.new_log()  # a vehicle reboot: the attitude restarts, the calibration stays
+                            cal.feed(transform(piece) if transform is not None else piece)
                         pos_fed, dirty = pos, True
                         if block.n_imu:
                             fed["imu"] += block.n_imu
@@ -324,7 +339,10 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
         res_cal = cal.result()
         stats = link_stats()
         stats["stop_reason"] = "interrupted" if stopped else src.stats["stop_reason"]
-        res_cal = res_cal.replace(meta={**res_cal.meta, "online": {**res_cal.meta.get("online", {}), "link": {k: stats[k] for k in (*_COUNTERS, "resumes")}}})  # noqa: E501 (calibrations are immutable)
+        online = {**res_cal.meta.get("online", {}), "link": {k: stats[k] for k in (*_COUNTERS, "resumes")}}
+        if segments:
+            online["segments"] = [dict(b) for b in segments]
+        res_cal = res_cal.replace(meta={**res_cal.meta, "online": online})  # calibrations are immutable
         if json_out is not None:
             write_atomic(json_out, res_cal.to_json() + "\n")
         save_checkpoint()
@@ -335,6 +353,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
                             cal.missing_motion(), [], int(fed["imu"]), wall, data_s, None, link=stats,
                             stop_reason=stats["stop_reason"], checkpoints=n_ckpt, resumes=resumes,
                             warnings=list(src.warnings))
+        result.boundaries = [dict(b) for b in segments]
         if apply is not None and exporter is not None:
             vehicle_params, int_names = exporter
             result.apply_format = apply
@@ -345,7 +364,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
                 result.applied = {}
                 return result
             print(f"onlinecal run: setting {len(params)} {apply} parameters on the vehicle", file=out, flush=True)
-            types = {n: _MAV_PARAM_TYPE_INT32 for n in params if n in int_names}
+            types = {n: MAV_PARAM_TYPE_INT32 for n in params if n in int_names}
             result.applied = src.set_params(params, types=types, bytewise=apply == "px4")
         return result
     finally:

@@ -16,7 +16,7 @@ before its time, zeros before the first (ArduPilot's "no compass yet").
 Link faults can be injected: a fraction of packets dropped, reordered (sent 1-3 packets later) or sent
 twice (same bytes, same MAVLink sequence number, as a duplicating radio or router would).
 
-Command line: ``python -m onlinecal.io.sender LOG URL [--rate-scale R] [--drop F] [--reorder F]
+Command line: ``python -m onlinecal.testing.sender LOG URL [--rate-scale R] [--drop F] [--reorder F]
 [--duplicate F] [--seed N] [--linger S]`` where LOG is a ``.csv``/``.tlog`` log or ``sim:PROFILE:SEED`` (a simulated
 session) and URL a pymavlink connection string, for example ``udpout:127.0.0.1:14550``.
 """
@@ -31,14 +31,16 @@ from typing import Any
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.tlog import mavutil_v2
+from onlinecal.io.mavlink import (
+    ACC_UNIT,
+    GYRO_UNIT,
+    MAG_UNIT,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    TEMP_UNIT,
+    mavutil_v2,
+)
 
-G0 = 9.80665
-ACC_UNIT = G0 * 1e-3  # m/s² per RAW_IMU acc count (milli-g)
-GYRO_UNIT = 1e-3  # rad/s per count (milli-rad/s)
-MAG_UNIT = 1e-3  # gauss per count (milli-gauss)
-TEMP_UNIT = 0.01  # °C per count (centi-°C)
-MAV_CMD_SET_MESSAGE_INTERVAL = 511
+__all__ = ["ACC_UNIT", "GYRO_UNIT", "MAG_UNIT", "TEMP_UNIT", "fault_schedule", "raw_imu_rows", "send_session"]
 _INT16 = (-32768, 32767)
 _SERVER_SCHEMES = ("udpin:", "tcpin:")  # links whose peer is only known once it has sent something
 
@@ -117,7 +119,8 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     mavutil = mavutil_v2()
     mavlink = mavutil.mavlink
     rows = raw_imu_rows(data)
-    order, stats = fault_schedule(rows.shape[0], drop, reorder, duplicate, np.random.default_rng(seed))
+    order, counts = fault_schedule(rows.shape[0], drop, reorder, duplicate, np.random.default_rng(seed))
+    stats: dict[str, Any] = dict(counts)
     table: dict[str, float] = {} if params is None else params
     stats.update(sent=0, samples=int(rows.shape[0]), commands=0, interval_us=None, peer=True, param_sets=0,
                  params=table)
@@ -268,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
 
-    p = argparse.ArgumentParser(prog="python -m onlinecal.io.sender", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m onlinecal.testing.sender", description=__doc__.split("\n")[0])
     p.add_argument("log", help=".csv or .tlog log, or sim:PROFILE:SEED")
     p.add_argument("url", help="pymavlink connection string, e.g. udpout:127.0.0.1:14550")
     p.add_argument("--rate-scale", type=float, default=1.0,

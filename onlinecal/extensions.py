@@ -21,7 +21,8 @@ time_offset           mag: re-stamped ``t_mag − seconds``; gyro/accel share th
                       sensor is resampled (cubic spline) at ``t_imu + seconds`` instead
 lever_arm             ``raw_acc −= M_acc⁻¹·(ω̇×r + ω×(ω×r))``, ω = the calibrated gyro, ω̇ its
                       Savitzky–Golay derivative (cubic, 0.1 s window); needs the calibration
-g_sensitivity         ``raw_gyro_i −= coeff_i·f_i``, f = the calibrated (and lever-arm corrected)
+g_sensitivity         ``raw_gyro −= G·f``, G = diag(coeff) + matrix (3×3, the full g-sensitivity;
+                      row = gyro axis, column = force axis), f = the calibrated (and lever-arm corrected)
                       accelerometer in the body frame, m/s² — the effect adds coeff·f_true(B) to the
                       gyro's raw value in rad/s, so the correction is in raw gyro units with f in B;
                       needs the calibration's accelerometer
@@ -89,7 +90,7 @@ def _entry(name: str, d: Any) -> dict[str, Any]:
     if d.get("effect", name) != name:
         raise ValueError(f"extension {name}: entry says effect {d['effect']!r}")
     for k in REQUIRED[name]:
-        if k not in d:
+        if k not in d and not (name == "g_sensitivity" and k == "coeff" and "matrix" in d):
             raise ValueError(f"extension {name}: missing key {k!r}")
     defaults = EFFECT_KEYS[name]
     sensor = d.get("sensor", defaults.get("sensor", "accel"))
@@ -108,6 +109,15 @@ def _entry(name: str, d: Any) -> dict[str, Any]:
         if k in ("sensor", "axis") or k not in d:
             continue
         v = d[k]
+        if k == "matrix":
+            try:
+                m = np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                m = np.zeros(0)
+            if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+                raise ValueError(f"extension {name}: matrix must be 3×3 finite numbers (got {v!r})")
+            out[k] = m
+            continue
         if k in PER_AXIS and isinstance(v, (list, tuple)):
             if axis is not None or len(v) != 3:
                 raise ValueError(f"extension {name}: {k} may be a list of 3 only with axis all")
@@ -118,6 +128,9 @@ def _entry(name: str, d: Any) -> dict[str, Any]:
             out[k] = _num(name, k, v)
     if name == "temperature_bias":
         out.setdefault("T0", 25.0)
+    if name == "g_sensitivity":
+        out.setdefault("coeff", np.zeros(3))
+        out["G"] = np.diag(out["coeff"]) + out.get("matrix", np.zeros((3, 3)))
     if name == "bias_drift" and np.any(out["density"] < 0):
         raise ValueError("extension bias_drift: density must be >= 0")
     if name == "saturation" and out["limit"] <= 0:
@@ -236,7 +249,7 @@ def correct(data: ImuData, extensions: dict[str, Any] | None, calibration: Calib
     if ext.get("g_sensitivity") and calibration is not None and calibration.accel is not None:
         f = calibration.accel.apply(raw["accel"])
         for e in ext["g_sensitivity"]:
-            raw["gyro"] -= e["coeff"] * f
+            raw["gyro"] -= f @ e["G"].T
         if r is not None:  # second pass: the lever arm with the g-corrected gyro
             raw["accel"] = acc0 - _lever(data.t_imu, raw["gyro"], calibration, r)
     return ImuData(np.array(data.t_imu, float), raw["gyro"], raw["accel"], np.array(data.temp, float), t_mag,
@@ -262,3 +275,9 @@ def clipped_mask(data: ImuData, extensions: dict[str, Any] | None, rtol: float =
         x = data.gyro if e["sensor"] == "gyro" else data.acc
         out[e["sensor"]] = np.abs(np.asarray(x, float)) >= e["limit"] * (1 - rtol)
     return out
+
+
+def gsens_matrix(entry: dict[str, Any]) -> Array:
+    """The full g-sensitivity G (3, 3; rad/s per m/s², raw gyro ← body specific force) of one calibration
+    JSON ``g_sensitivity`` entry: diag(coeff on its axes) + matrix."""
+    return np.asarray(validate_extensions({"g_sensitivity": entry})["g_sensitivity"][0]["G"], float)

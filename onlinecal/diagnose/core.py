@@ -29,8 +29,9 @@ from ..batch.segment import noise_floors, segment
 from ..io.base import ImuData
 from ..model import Calibration
 from ..sim.motion import G0
-from .analysis import Analysis, analyse, channel_mask
-from .detectors import Handedness, Saturated, find_axis_sign, find_saturation
+from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, REQUIRES, assess, coverage
+from .analysis import Analysis, analyse, channel_mask, restrict
+from .detectors import Handedness, Saturated, candidates, find_axis_sign, find_saturation
 from .motion import prepare
 from .regressors import SUBCHANNELS, Design
 from .resim import resimulate
@@ -40,6 +41,8 @@ from .stats import channel_stats, rest_stats
 Array = NDArray[np.float64]
 MAX_EFFECTS = 4
 NULL_MARGIN = 15.0  # nats above the re-simulation's own score
+INSEPARABLE_RHO = 0.95  # |Spearman ρ(T, t)| above which temperature and drift are one regressor in practice
+Z_SPREAD = 3.0  # the bar is at least this many standard deviations of the candidate's held-out gain
 
 
 def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
@@ -53,9 +56,13 @@ def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
     return out
 
 
-def _threshold(k: float, n: int, null: float) -> float:
-    """Significance bar (nats): the BIC penalty ½·k·ln n, and the re-simulation's score plus a margin."""
-    return max(0.5 * k * np.log(max(n, 2)), null + NULL_MARGIN)
+def _threshold(k: float, n: int, null: float, spread: float = 0.0) -> float:
+    """Significance bar (nats): the largest of the BIC penalty ½·k·ln n, the re-simulation's score plus a
+    margin, and Z_SPREAD standard deviations of the candidate's own held-out gain over the session's time
+    blocks (:meth:`.score.Problem.spread`) — a candidate that only fits this session's noise scores within
+    that spread of zero with either sign, so the bar is calibrated to it (one-sided 3σ: ≈ 0.1 % per
+    candidate, ≈ 1 % per session over the ~9 candidates)."""
+    return max(0.5 * k * np.log(max(n, 2)), null + NULL_MARGIN, Z_SPREAD * spread)
 
 
 def _k(an: Analysis, key: str, gain: Any) -> float:
@@ -69,7 +76,8 @@ EVIDENCE = {
                         "time blocks than a bias that wanders freely",
     "bias_drift": "the {sensor} bias wanders between rests (random walk of density {density:.3g}/√s by maximum "
                   "marginal likelihood), more than temperature explains",
-    "g_sensitivity": "the gyro's rest readings change with the direction of gravity across the static positions",
+    "g_sensitivity": "the gyro's rest readings change with the direction of gravity across the static positions "
+                     "(full 3×3 G, raw gyro ← G·f)",
     "scale_nonlinearity": "the {sensor} error grows with the square of the rate (fast turns vs slow ones), beyond "
                           "what a linear scale absorbs",
     "lever_arm": "accelerometer residuals follow ω̇×r + ω×(ω×r) during turns (|f| ≠ g while rotating)",
@@ -85,8 +93,10 @@ def _finding(an: Analysis, model: list[str], key: str, gain: Any, thr: float, nu
     axis = params.pop("axis", None)
     txt = EVIDENCE.get(cand.effect, "").format(sensor=sensor, **{k: v for k, v in params.items()
                                                                    if isinstance(v, float)})
+    req = f" Data needed: {REQUIRES[cand.effect]}." if cand.effect in REQUIRES else ""
     ev = (f"{txt}; held-out log-likelihood gain {gain.loglik_gain:.1f} nats against a bar of {thr:.1f} "
-          f"(re-simulation without effects: {null:.1f}).")
+          f"(re-simulation without effects: {null:.1f}; the gain's spread over time blocks: ±{gain.spread:.1f})."
+          f"{req}")
     return Finding(cand.effect, sensor, axis, float(gain.loglik_gain), significant, params, gain.to_dict(), ev,
                    thr, null)
 
@@ -102,6 +112,8 @@ def _extension(f: Finding, T0: float | None) -> dict[str, Any]:
             e["T0"] = T0 if T0 is not None else 25.0
         if f.effect == "g_sensitivity":
             e.pop("sensor")
+            if p.get("full"):  # cross-axis terms: the full matrix (its diagonal included), no separate coeff
+                e = {"axis": None, "matrix": p["matrix"]}
     elif f.effect == "bias_drift":
         e = {"sensor": f.sensor, "axis": f.axis, "density": p["density"]}
     elif f.effect == "lever_arm":
@@ -209,7 +221,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     designs = _designs(logs, cal, res.segmentations, g, exclude)
     if not designs:
         raise FitError("no log long enough to diagnose (≥ 50 IMU samples)")
-    an = analyse(designs, cal)
+    cov = coverage(designs)
+    untestable += list(cov.blocked.values())
+    an = analyse(designs, cal, only=[c.key for c in candidates(True, True) if c.effect not in cov.blocked])
     timing["analyse"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     sim_logs = []
@@ -223,12 +237,28 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         null_designs.append(Design(s, g, d.sid))
     null = analyse(null_designs, cal, only=[c.key for c in an.cands])
     timing["null"] = time.perf_counter() - t0
+    # -- 2c. is the baseline adequate? (invariants it does not meet are named and left out) ---------------
+    t0 = time.perf_counter()
+    adq = assess(an, null)
+    full_an, full_null = an, null
+    if adq.drop:
+        an, null = restrict(an, adq.drop), restrict(null, adq.drop)
+    blocked_keys: set[str] = set()
+    if adq.linear_acceleration is not None:
+        la = adq.linear_acceleration
+        blocked_keys |= set(ACCEL_KINEMATIC_EFFECTS)
+        untestable.append(
+            f"lever_arm, scale_nonlinearity (accel), time_offset (accel), axis_sign (accel): the accelerometer "
+            f"sees specific force other than gravity in motion (|a| − g RMS {la['a_norm_rms_m_s2']:.3g} m/s² "
+            f"against {la['a_norm_noise_m_s2']:.2g} from noise; {la['worst']} {la['ratio']:.0f}× its simulated "
+            f"RMS) while |a| = g holds at rest: linear acceleration (thrust, a carrying hand), not a model error")
+    timing["adequacy"] = time.perf_counter() - t0
     # -- 3. forward selection ------------------------------------------------------------------------
     n = an.problem.n
     model = ["nuisance"]
     chosen: list[str] = []
-    cond: dict[str, Any] = dict(an.first)
-    thr = {k: _threshold(_k(an, k, g_), n, null.first[k].loglik_gain) for k, g_ in an.first.items()}
+    cond: dict[str, Any] = {k: v for k, v in an.first.items() if k not in blocked_keys} if n else {}
+    thr = {k: _threshold(_k(an, k, g_), n, null.first[k].loglik_gain, g_.spread) for k, g_ in cond.items()}
     while len(chosen) < MAX_EFFECTS:
         ok = [k for k in cond if k not in chosen and cond[k].loglik_gain > thr[k]]
         if not ok:
@@ -239,7 +269,7 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         for k in cond:
             if k not in chosen:
                 cond[k] = an.score(model, k)
-                thr[k] = _threshold(_k(an, k, cond[k]), n, null.first[k].loglik_gain)
+                thr[k] = _threshold(_k(an, k, cond[k]), n, null.first[k].loglik_gain, cond[k].spread)
     # -- 4. findings ------------------------------------------------------------------------------------
     for k in chosen:
         rest_model = ["nuisance"] + [b for c in chosen if c != k for b in an.blocks[c]]
@@ -250,20 +280,24 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     others = sorted((k for k in cond if k not in chosen), key=lambda k: -cond[k].loglik_gain)
     for k in others:
         findings.append(_finding(an, model, k, cond[k], thr[k], null.first[k].loglik_gain, False))
+    _inseparable(findings, an, designs, thr)
     for st in sats:
         findings.insert(0, _saturation_finding(st, an))
+    for grp, e in adq.inadequate.items():
+        findings.insert(0, _inadequate_finding(grp, e))
     if flip is not None:
         _flip_gain(flip, logs, g)
         findings.insert(0, flip)
     # structural findings lead: an inverted axis or a rail is undone/censored before the baseline is fitted,
     # so every other finding is conditional on them; then the linear effects by held-out gain
-    structural = ("axis_sign", "saturation")
-    findings.sort(key=lambda f: (not f.significant, f.effect not in structural, -f.score if f.significant else 0.0))
+    structural = ("baseline_inadequate", "axis_sign", "saturation")
+    findings.sort(key=lambda f: (not f.significant, f.effect != "baseline_inadequate", f.effect not in structural,
+                                 -f.score if f.significant else 0.0))
     # -- 5. extended calibration, statistics, simulator check -------------------------------------------
     T0 = _rest_temperature(designs)
     exts: dict[str, Any] = {}
     for f in findings:
-        if f.significant:
+        if f.significant and f.effect != "baseline_inadequate":
             exts.setdefault(f.effect, []).append(_extension(f, T0))
     exts = {k: v[0] if len(v) == 1 else v for k, v in exts.items()}
     ext_cal = cal.replace(extensions=exts)
@@ -284,10 +318,13 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         "rest_measured": rest_stats(designs[0]),
         "rest_simulated": rest_stats(null_designs[0]),
         "notes": [nt for d in designs for nt in d.s.notes],
+        "adequacy": adq.to_dict(),
+        "coverage": cov.to_dict(),
+        "gyro_bias_rests": gyro_bias_rests(designs, cal, exts.get("g_sensitivity")),
     }
     untestable += _untestable(designs, an)
     diag = Diagnosis(baseline, findings, ext_cal, untestable, {}, timing, [d.source for d in logs])
-    diag._parts = (an, null, chosen, model)  # type: ignore[attr-defined]
+    diag._parts = (an, null, chosen, model, full_an, full_null)  # type: ignore[attr-defined]
     if check and chosen:
         t0 = time.perf_counter()
         diag.simulation_check = _simulation_check(an, chosen, r_meas, r_sim, null.problem.ch)
@@ -407,9 +444,100 @@ def _untestable(designs: list[Design], an: Analysis) -> list[str]:
     if not any(d.mhat is not None for d in designs):
         out.append("time_offset: no magnetometer, so only the accelerometer's lag against the gyro is measured "
                    "(a late accel and an early gyro look the same)")
-    moving = sum(int((np.linalg.norm(d.clean["w"], axis=1) > 0.5).sum() / d.s.rate) for d in designs)
-    if moving < 10:
-        out.append(f"lever_arm, scale_nonlinearity, time_offset: only {moving} s of rotation faster than 0.5 rad/s")
+    return out
+
+
+def _inadequate_finding(group: str, e: dict[str, Any]) -> Finding:
+    """The baseline does not meet an invariant: the first finding, before any effect (adequacy module)."""
+    chans = ", ".join(f"{k} {v:.1f}×" for k, v in e["channels"].items())
+    ev = (f"the paper-model baseline does not meet '{e['invariant']}' ({e['sensor']}): the measured residual's "
+          f"RMS is {e['ratio']:.1f}× that of the same session re-simulated through the fitted model ({chans}), "
+          f"even with every candidate effect fitted at once (bar {ADEQ_MAX:g}×); these rows are left out of the "
+          f"effect scoring and no effect is fitted to them.")
+    # excess log-likelihood of the failing rows against noise: ½·n·(ratio² − 1), as a scale of "how far"
+    score = 0.5 * e["rows"] * (e["ratio"] ** 2 - 1.0)
+    return Finding("baseline_inadequate", e["sensor"], None, float(score), True,
+                   {"invariant": e["invariant"], "channels": e["channels"], "rms_ratio": e["ratio"]},
+                   {"heldout_rms_before": e["ratio"], "heldout_rms_after": float("nan"),
+                    "loglik_gain": float("nan"), "bic_delta": float("nan")}, ev, ADEQ_MAX, 1.0)
+
+
+def _monotonic_temperature(designs: list[Design]) -> float:
+    """Largest |Spearman ρ| between temperature and time over the sessions with a temperature column."""
+    from scipy.stats import spearmanr
+
+    best = 0.0
+    for d in designs:
+        if not d.s.has_temp:
+            continue
+        T = d.s.temp
+        ok = np.isfinite(T)
+        if ok.sum() < 10:
+            continue
+        rho = float(spearmanr(d.s.t[ok], T[ok])[0])
+        if np.isfinite(rho):
+            best = max(best, abs(rho))
+    return best
+
+
+def _inseparable(findings: list[Finding], an: Analysis, designs: list[Design], thr: dict[str, float]) -> None:
+    """temperature_bias and bias_drift of one sensor cannot be told apart where the temperature rises (or
+    falls) steadily with time: both clear their bar on their own, and the temperature is a monotonic function
+    of time (|Spearman ρ| ≥ INSEPARABLE_RHO). The significant one is kept but marked, and the other named."""
+    rho = _monotonic_temperature(designs)
+    if rho < INSEPARABLE_RHO:
+        return
+    for f in findings:
+        if not f.significant or f.effect not in ("temperature_bias", "bias_drift"):
+            continue
+        other = "bias_drift" if f.effect == "temperature_bias" else "temperature_bias"
+        ok = f"{other}:{f.sensor}"
+        g0 = an.first.get(ok)
+        if g0 is None or g0.loglik_gain <= thr.get(ok, np.inf):
+            continue
+        f.parameters["inseparable_from"] = other
+        f.evidence = (f"cannot be told apart from {other} on this data: the temperature rises with time "
+                      f"(|Spearman ρ| = {rho:.3f}) and {other} alone also clears its bar "
+                      f"({g0.loglik_gain:.1f} nats); read as '{f.effect} or {other}'. " + f.evidence)
+
+
+def gyro_bias_rests(designs: list[Design], cal: Calibration, gsens: Any = None) -> dict[str, Any]:
+    """Rest-to-rest spread of the calibrated gyro's rest means against what noise allows, and the gyro bias
+    σ that covers it (issue: a batch σ of 3e-5 rad/s beside a rest-to-rest spread ten times larger).
+
+    Per rest of ≥ 1 s: the mean calibrated rate (rad/s) and its noise σ (within-rest sd/√n). ``spread`` is the
+    sd of the rest means per axis; ``noise`` the RMS of their noise σ; while the spread exceeds noise the bias
+    is not one constant, and ``sigma_bias`` = max(batch σ, spread) is the honest 1σ of the bias at an
+    arbitrary moment. With a g_sensitivity extension (``gsens``, the calibration JSON entry) the rest means
+    are corrected by it first (``spread_after_extension``, ``sigma_bias_after_extension``)."""
+    means, accs, noise = [], [], []
+    for d in designs:
+        for iv in d.s.rests:
+            if iv.n < max(5, d.s.rate):
+                continue
+            w = d.s.w[iv.i0:iv.i1]
+            means.append(w.mean(axis=0))
+            accs.append(d.s.a[iv.i0:iv.i1].mean(axis=0))
+            noise.append(w.std(axis=0, ddof=1) / np.sqrt(w.shape[0]))
+    if len(means) < 3 or cal.gyro is None:
+        return {}
+    W, A, E = np.array(means), np.array(accs), np.array(noise)
+    batch = np.asarray(cal.gyro.sigma.get("bias", np.zeros(3)), float).reshape(-1)[:3]
+    if batch.size < 3:
+        batch = np.zeros(3)
+    spread = W.std(axis=0, ddof=1)
+    nz = np.sqrt(np.mean(E**2, axis=0))
+    out: dict[str, Any] = {"rests": len(means), "spread": spread.tolist(), "noise": nz.tolist(),
+                           "spread_over_noise": (spread / np.maximum(nz, 1e-300)).tolist(),
+                           "batch_sigma_bias": batch.tolist(), "sigma_bias": np.maximum(batch, spread).tolist()}
+    if gsens is not None:
+        from ..extensions import gsens_matrix
+
+        G = sum((gsens_matrix(e) for e in (gsens if isinstance(gsens, list) else [gsens])), np.zeros((3, 3)))
+        Wc = W - A @ (cal.gyro.matrix @ G).T  # δω_cal = M·G·f: the extension's share of each rest mean
+        sp2 = Wc.std(axis=0, ddof=1)
+        out["spread_after_extension"] = sp2.tolist()
+        out["sigma_bias_after_extension"] = np.maximum(batch, sp2).tolist()
     return out
 
 

@@ -102,7 +102,32 @@ def drift_cols(sensor: str) -> Callable[[Design, Calibration], Array]:
 
 
 def gsens_cols(d: Design, cal: Calibration) -> Array:
-    return _raw_cols(d, cal, "gyro", d.clean["a"])
+    """The full 3×3 g-sensitivity (raw gyro ← G·f, f the body specific force): for each force component j a
+    raw change f_j on every gyro axis i, i.e. the column of G[i, j] at 3·j + i."""
+    f = d.clean["a"]
+    return np.concatenate([_raw_cols(d, cal, "gyro", np.repeat(f[:, j : j + 1], 3, axis=1)) for j in range(3)],
+                          axis=1)
+
+
+def gsens_params(beta: Array, cov: Array, ds: list[Design], cal: Calibration) -> dict[str, Any]:
+    """G (3×3, rad/s per m/s²) from the 9 coefficients (order 3·j + i); a cross-axis term counts when it is
+    ≥ 5 σ and ≥ 30 % of the largest element: then the finding is the full matrix (axis all, ``matrix``), else
+    the same-axis terms alone as before (``coeff`` on one axis or per axis)."""
+    G = beta.reshape(3, 3).T
+    sd = np.sqrt(np.maximum(np.diag(cov), 0)).reshape(3, 3).T
+    off = ~np.eye(3, dtype=bool)
+    z = np.abs(G) / np.maximum(sd, 1e-300)
+    big = (z >= 5.0) & (np.abs(G) >= 0.3 * np.abs(G).max())
+    out: dict[str, Any] = {"matrix": G.tolist(), "matrix_sigma": sd.tolist(),
+                           "matrix_mrad_s_per_g": (G * 9.80665e3).tolist()}
+    if (big & off).any():
+        out.update({"axis": None, "coeff": np.diag(G).tolist(), "per_axis": np.diag(G).tolist(),
+                    "per_axis_sigma": np.diag(sd).tolist(), "full": True})
+        return out
+    axis, c = _axis_choice(np.diag(G), np.diag(sd))
+    out.update({"axis": axis, "coeff": c, "per_axis": np.diag(G).tolist(), "per_axis_sigma": np.diag(sd).tolist(),
+                "full": False})
+    return out
 
 
 def nonlin_cols(sensor: str) -> Callable[[Design, Calibration], Array]:
@@ -206,7 +231,7 @@ def candidates(has_mag: bool, has_temp: bool) -> list[Candidate]:
     out = [
         Candidate("bias_drift", "gyro", True, drift_cols("gyro"), drift_params),
         Candidate("bias_drift", "accel", True, drift_cols("accel"), drift_params),
-        Candidate("g_sensitivity", "gyro", False, gsens_cols, per_axis_params("coeff")),
+        Candidate("g_sensitivity", "gyro", False, gsens_cols, gsens_params),
         Candidate("scale_nonlinearity", "gyro", False, nonlin_cols("gyro"), per_axis_params("coeff")),
         Candidate("scale_nonlinearity", "accel", False, nonlin_cols("accel"), per_axis_params("coeff")),
         Candidate("lever_arm", "accel", False, lever_cols, lever_params),

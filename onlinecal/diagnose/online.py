@@ -77,6 +77,8 @@ def run_ukf(logs: list[ImuData], cal: Calibration, extensions: dict[str, Any] | 
         kept = []
         for e, raw in zip(entries, _raw_entries(extensions, name), strict=True):
             st = STATE_OF.get((name, e["sensor"]))
+            if name == "g_sensitivity" and "matrix" in raw:
+                st = None  # the filter's g_sensitivity state is diagonal: a full matrix is applied to the data
             if st in avail:
                 states.append(st)
             elif name not in NOT_CORRECTED:

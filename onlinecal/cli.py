@@ -313,7 +313,8 @@ def cmd_diagnose(a: argparse.Namespace) -> int:
     from .diagnose import diagnose
 
     logs = _read_logs(a.logs, a)
-    diag = diagnose(logs, g=a.gravity, seed=a.seed)
+    diag = diagnose(logs, g=a.gravity, seed=a.seed,
+                    calibration=_load_cal(a.init) if getattr(a, "init", None) else None)
     print(f"verdict: {diag.verdict}")
     for f in diag.findings:
         if f.significant:
@@ -469,6 +470,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", default=None, help="directory for report.md and plots")
     p.add_argument("--gravity", type=float, default=9.80665, help="local g, m/s^2")
     p.add_argument("--seed", type=int, default=0, help="seed of the re-simulation's noise")
+    p.add_argument("--init", default=None, metavar="CAL.json",
+                   help="baseline calibration (e.g. a bench calibration) instead of the batch fit on these logs")
     _add_scales(p)
     p.set_defaults(fn=cmd_diagnose)
 

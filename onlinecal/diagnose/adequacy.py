@@ -47,6 +47,7 @@ INVARIANTS: dict[str, tuple[str, str]] = {
 ACCEL_KINEMATIC = ("a_norm", "ka_x", "ka_y", "ka_z")
 # candidates that read the accelerometer's kinematic channels only (untestable under linear acceleration)
 ACCEL_KINEMATIC_EFFECTS = ("lever_arm:accel", "scale_nonlinearity:accel")
+MIN_RATE_HZ = 10.0  # below it no invariant is checked (0.2-s blocks and 1-s rest chunks need ≥ 2–10 samples)
 
 # minimum data per effect: (rate Hz, duration s, what else), as stated in the evidence and the docs
 REQUIRES: dict[str, str] = {
@@ -151,22 +152,45 @@ def _rest_rows(an: Analysis, margin_s: float = 0.3) -> Array:
     return out
 
 
-def _full_fit_residual(an: Analysis, keep: Array) -> Array:
-    """Residual (physical units) of the baseline with every candidate at once, fitted on the rows ``keep``
-    only (NaN elsewhere): what no effect can explain."""
-    P = an.problem
-    full = ["nuisance"] + [b for k in an.blocks for b in an.blocks[k]]
-    ix = P.idx(full)
-    Zk = P.Z[keep]
-    Xk = Zk[:, ix]
-    G = Xk.T @ Xk
-    pri = P.prior_matrix(full, an.priors)
-    if pri is not None:
-        G = G + pri
-    beta = solve(G, Xk.T @ Zk[:, -1])[0]
-    out = np.full(P.n, np.nan)
-    out[keep] = (Zk[:, -1] - Xk @ beta) * P.sigma[P.ch[keep]]
-    return out
+class _FullFit:
+    """The baseline with every candidate at once, refitted as rows are taken out (Gram of all rows minus the
+    Gram of the rows dropped so far: the cost is that of the dropped rows, not of the kept ones)."""
+
+    def __init__(self, an: Analysis) -> None:
+        P = an.problem
+        self.P = P
+        full = ["nuisance"] + [b for k in an.blocks for b in an.blocks[k]]
+        self.ix = P.idx(full)
+        G = P.G[0] + P.G[1]
+        self.G = G[np.ix_(self.ix, self.ix)].copy()
+        self.c = G[self.ix, -1].copy()
+        self.d0 = np.diag(self.G).copy()
+        self.pri = P.prior_matrix(full, an.priors)
+        self.X = P.Z[:, self.ix] if not np.array_equal(self.ix, np.arange(self.ix.size)) else P.Z[:, : self.ix.size]
+        self.dropped = np.zeros(P.n, bool)
+
+    def drop(self, rows: Array) -> None:
+        new = rows & ~self.dropped
+        if new.any():
+            Xd, yd = self.X[new], self.P.Z[new, -1]
+            self.G -= Xd.T @ Xd
+            self.c -= Xd.T @ yd
+            self.dropped |= new
+
+    def residual(self) -> Array:
+        """Residual (physical units) of the kept rows after the full fit on them (NaN on dropped rows)."""
+        # columns whose every row was dropped: their Gram entries are rounding residue; zero them exactly
+        G = self.G.copy()
+        c = self.c.copy()
+        dead = np.diag(G) <= 1e-9 * np.maximum(self.d0, 1e-300)
+        G[dead, :] = 0.0
+        G[:, dead] = 0.0
+        c[dead] = 0.0
+        A = G if self.pri is None else G + self.pri
+        beta = solve(A, c)[0]
+        r = (self.P.Z[:, -1] - self.X @ beta) * self.P.sigma[self.P.ch]
+        r[self.dropped] = np.nan
+        return r
 
 
 def assess(an: Analysis, null: Analysis) -> Adequacy:
@@ -209,16 +233,19 @@ def assess(an: Analysis, null: Analysis) -> Adequacy:
                 lin = {"channels": kin, "worst": worst, "ratio": chans[worst]["ratio"],
                        "a_norm_rms_m_s2": r_move, "a_norm_rms_at_rest_m_s2": r_rest,
                        "a_norm_noise_m_s2": an_c["rms_simulated"]}
-                drop |= set(kin)
+                # the dip channel reads gravity's direction from the accelerometer too
+                drop |= set(kin) | ({"dip"} & set(chans))
                 if r_rest / an_c["rms_simulated"] > ADEQ_MAX and r_rest > ACC_REST_TOL:
                     inad["a_norm"] = {"sensor": "accel", "invariant": "|a| = g at rest", "rows": int(mr.sum()),
                                       "channels": {"a_norm (rests)": r_rest / an_c["rms_simulated"]},
                                       "ratio": r_rest / an_c["rms_simulated"]}
+    ff = _FullFit(an)
     for _ in range(len(INVARIANTS)):
         keep = ~np.isin(P.ch, [SUBCHANNELS.index(c) for c in drop])
         if keep.sum() < 12:
             break
-        ra = _full_fit_residual(an, keep)
+        ff.drop(~keep)
+        ra = ff.residual()
         worst_g, worst_r = None, ADEQ_MAX
         for nm, c in chans.items():
             if nm in drop:

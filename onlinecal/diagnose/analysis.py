@@ -179,7 +179,8 @@ def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = No
 
 
 def restrict(an: Analysis, drop: tuple[str, ...]) -> Analysis:
-    """The same analysis with the rows of the sub-channels ``drop`` left out (columns are not rebuilt)."""
+    """The same analysis with the rows of the sub-channels ``drop`` left out (columns are not rebuilt; the
+    whitening and the drift densities are refitted on the rows kept)."""
     return _finish(an.designs, an.cal, an.cands, an.blocks, an.rows, tuple(drop))
 
 

@@ -29,7 +29,7 @@ from ..batch.segment import noise_floors, segment
 from ..io.base import ImuData
 from ..model import Calibration
 from ..sim.motion import G0
-from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, REQUIRES, assess, coverage
+from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, MIN_RATE_HZ, REQUIRES, Adequacy, assess, coverage
 from .analysis import Analysis, analyse, channel_mask, restrict
 from .detectors import Handedness, Saturated, candidates, find_axis_sign, find_saturation
 from .motion import prepare
@@ -42,7 +42,8 @@ Array = NDArray[np.float64]
 MAX_EFFECTS = 4
 NULL_MARGIN = 15.0  # nats above the re-simulation's own score
 INSEPARABLE_RHO = 0.95  # |Spearman ρ(T, t)| above which temperature and drift are one regressor in practice
-Z_SPREAD = 3.0  # the bar is at least this many standard deviations of the candidate's held-out gain
+Z_SPREAD = 3.0  # the bar is at least this many standard deviations of the null's held-out gain
+NIS_TOL = 0.05  # the extended UKF's mean NIS may exceed the baseline's by this share before it is refused
 
 
 def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
@@ -58,10 +59,11 @@ def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
 
 def _threshold(k: float, n: int, null: float, spread: float = 0.0) -> float:
     """Significance bar (nats): the largest of the BIC penalty ½·k·ln n, the re-simulation's score plus a
-    margin, and Z_SPREAD standard deviations of the candidate's own held-out gain over the session's time
-    blocks (:meth:`.score.Problem.spread`) — a candidate that only fits this session's noise scores within
-    that spread of zero with either sign, so the bar is calibrated to it (one-sided 3σ: ≈ 0.1 % per
-    candidate, ≈ 1 % per session over the ~9 candidates)."""
+    margin, and Z_SPREAD standard deviations of the candidate's held-out gain over the time blocks of the
+    re-simulated session (:meth:`.score.Problem.spread`; the null: this motion and noise, no effect) — a
+    candidate that only fits the noise scores within that spread of zero with either sign, so the bar is
+    calibrated to it (one-sided 3σ: ≈ 0.1 % per candidate, ≈ 1 % per session over the ~9 candidates). The
+    measured session's own spread is not used: a real effect concentrated in a few blocks inflates it."""
     return max(0.5 * k * np.log(max(n, 2)), null + NULL_MARGIN, Z_SPREAD * spread)
 
 
@@ -86,7 +88,7 @@ EVIDENCE = {
 
 
 def _finding(an: Analysis, model: list[str], key: str, gain: Any, thr: float, null: float,
-             significant: bool) -> Finding:
+             significant: bool, null_spread: float = 0.0) -> Finding:
     cand = next(c for c in an.cands if c.key == key)
     params = an.params(model, key)
     sensor = params.pop("sensor", cand.sensor)
@@ -95,7 +97,7 @@ def _finding(an: Analysis, model: list[str], key: str, gain: Any, thr: float, nu
                                                                    if isinstance(v, float)})
     req = f" Data needed: {REQUIRES[cand.effect]}." if cand.effect in REQUIRES else ""
     ev = (f"{txt}; held-out log-likelihood gain {gain.loglik_gain:.1f} nats against a bar of {thr:.1f} "
-          f"(re-simulation without effects: {null:.1f}; the gain's spread over time blocks: ±{gain.spread:.1f})."
+          f"(re-simulation without effects: {null:.1f} ± {null_spread:.1f})."
           f"{req}")
     return Finding(cand.effect, sensor, axis, float(gain.loglik_gain), significant, params, gain.to_dict(), ev,
                    thr, null)
@@ -239,7 +241,12 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     timing["null"] = time.perf_counter() - t0
     # -- 2c. is the baseline adequate? (invariants it does not meet are named and left out) ---------------
     t0 = time.perf_counter()
-    adq = assess(an, null)
+    if cov.rate_hz >= MIN_RATE_HZ:
+        adq = assess(an, null)
+    else:
+        adq = Adequacy({}, {}, None, ())
+        untestable.append(f"baseline adequacy: needs ≥ {MIN_RATE_HZ:g} Hz to check the model's invariants "
+                          f"against noise; this data: {cov.rate_hz:.3g} Hz, {cov.duration_s:.0f} s")
     full_an, full_null = an, null
     if adq.drop:
         an, null = restrict(an, adq.drop), restrict(null, adq.drop)
@@ -258,7 +265,7 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     model = ["nuisance"]
     chosen: list[str] = []
     cond: dict[str, Any] = {k: v for k, v in an.first.items() if k not in blocked_keys} if n else {}
-    thr = {k: _threshold(_k(an, k, g_), n, null.first[k].loglik_gain, g_.spread) for k, g_ in cond.items()}
+    thr = {k: _threshold(_k(an, k, g_), n, null.first[k].loglik_gain, null.first[k].spread) for k, g_ in cond.items()}
     while len(chosen) < MAX_EFFECTS:
         ok = [k for k in cond if k not in chosen and cond[k].loglik_gain > thr[k]]
         if not ok:
@@ -269,17 +276,18 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         for k in cond:
             if k not in chosen:
                 cond[k] = an.score(model, k)
-                thr[k] = _threshold(_k(an, k, cond[k]), n, null.first[k].loglik_gain, cond[k].spread)
+                thr[k] = _threshold(_k(an, k, cond[k]), n, null.first[k].loglik_gain, null.first[k].spread)
     # -- 4. findings ------------------------------------------------------------------------------------
     for k in chosen:
         rest_model = ["nuisance"] + [b for c in chosen if c != k for b in an.blocks[c]]
         gk = an.score(rest_model, k)
-        f = _finding(an, rest_model, k, gk, thr[k], null.first[k].loglik_gain, True)
+        f = _finding(an, rest_model, k, gk, thr[k], null.first[k].loglik_gain, True, null.first[k].spread)
         f.gain.update(_rms_physical(an, rest_model, k))
         findings.append(f)
     others = sorted((k for k in cond if k not in chosen), key=lambda k: -cond[k].loglik_gain)
     for k in others:
-        findings.append(_finding(an, model, k, cond[k], thr[k], null.first[k].loglik_gain, False))
+        findings.append(_finding(an, model, k, cond[k], thr[k], null.first[k].loglik_gain, False,
+                                 null.first[k].spread))
     _inseparable(findings, an, designs, thr)
     for st in sats:
         findings.insert(0, _saturation_finding(st, an))
@@ -300,7 +308,8 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         if f.significant and f.effect != "baseline_inadequate":
             exts.setdefault(f.effect, []).append(_extension(f, T0))
     exts = {k: v[0] if len(v) == 1 else v for k, v in exts.items()}
-    ext_cal = cal.replace(extensions=exts)
+    gbr = gyro_bias_rests(designs, cal, exts.get("g_sensitivity"))
+    ext_cal = _honest_gyro_sigma(cal.replace(extensions=exts), gbr)
     base_beta, _ = an.problem.fit(["nuisance"])
     r_meas = an.problem.residual(["nuisance"], base_beta)
     nb, _ = null.problem.fit(["nuisance"])
@@ -320,7 +329,7 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         "notes": [nt for d in designs for nt in d.s.notes],
         "adequacy": adq.to_dict(),
         "coverage": cov.to_dict(),
-        "gyro_bias_rests": gyro_bias_rests(designs, cal, exts.get("g_sensitivity")),
+        "gyro_bias_rests": gbr,
     }
     untestable += _untestable(designs, an)
     diag = Diagnosis(baseline, findings, ext_cal, untestable, {}, timing, [d.source for d in logs])
@@ -356,10 +365,23 @@ def _ukf_stage(diag: Diagnosis, logs: list[ImuData], cal: Calibration, exts: dic
         return (s["nis_mean"], s["outside_band"]) if s else (r["nis_mean"], r["outside_band"])
 
     for f in diag.significant:
-        if f.effect in NOT_CORRECTED:
+        if f.effect in NOT_CORRECTED or f.effect == "baseline_inadequate":
             continue
         (nb, ob), (na, oa) = pick(before, f.sensor), pick(after, f.sensor)
         f.gain.update({"ukf_nis_before": nb, "ukf_nis_after": na, "ukf_outside_before": ob, "ukf_outside_after": oa})
+    # the extensions must keep the filter consistent: where the NIS with them is worse than the baseline's
+    # (beyond the window-mean's own scatter), they are not carried into the calibration the user gets
+    nb, na = float(before["nis_mean"]), float(after["nis_mean"])
+    if np.isfinite(nb) and np.isfinite(na) and na > nb * (1.0 + NIS_TOL):
+        kept = {k: v for k, v in exts.items() if k in NOT_CORRECTED}
+        diag.calibration = diag.calibration.replace(extensions=kept)
+        diag.baseline["ukf_guard"] = (
+            f"extensions {', '.join(k for k in exts if k not in NOT_CORRECTED)} not applied: the UKF's mean NIS "
+            f"with them ({na:.3g}) exceeds the baseline's ({nb:.3g}) by more than {NIS_TOL:.0%}; the findings "
+            f"stand as diagnosis, the filter cannot carry them on this data")
+        for f in diag.significant:
+            if f.effect not in NOT_CORRECTED and f.effect != "baseline_inadequate":
+                f.parameters["applied"] = False
 
 
 def _rest_temperature(designs: list[Design]) -> float | None:
@@ -499,6 +521,23 @@ def _inseparable(findings: list[Finding], an: Analysis, designs: list[Design], t
         f.evidence = (f"cannot be told apart from {other} on this data: the temperature rises with time "
                       f"(|Spearman ρ| = {rho:.3f}) and {other} alone also clears its bar "
                       f"({g0.loglik_gain:.1f} nats); read as '{f.effect} or {other}'. " + f.evidence)
+
+
+def _honest_gyro_sigma(cal: Calibration, gbr: dict[str, Any]) -> Calibration:
+    """The gyro bias σ widened to the rest-to-rest spread on the axes where the rests disagree by more than
+    twice what noise allows (after the g_sensitivity extension where one was found): until an extension
+    explains the spread, the bias is known no better than it."""
+    if not gbr or cal.gyro is None:
+        return cal
+    key = "spread_after_extension" if "spread_after_extension" in gbr else "spread"
+    spread, noise = np.asarray(gbr[key]), np.asarray(gbr["noise"])
+    sig = np.asarray(gbr["batch_sigma_bias"], float)
+    wide = spread > 2.0 * noise
+    if not wide.any():
+        return cal
+    new = np.where(wide, np.maximum(sig, spread), sig)
+    gbr["sigma_bias_reported"] = new.tolist()
+    return cal.replace(gyro=cal.gyro.with_sigma({**cal.gyro.sigma, "bias": new}))
 
 
 def gyro_bias_rests(designs: list[Design], cal: Calibration, gsens: Any = None) -> dict[str, Any]:

@@ -48,6 +48,7 @@ from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 from scipy.signal import savgol_filter
 
+from .effect_registry import REQUIRED, SENSORS_OF
 from .io.base import ImuData
 from .model import Calibration
 from .sim.effects import AXES, EFFECT_KEYS, EFFECTS, LeverArm
@@ -59,17 +60,9 @@ EXTENSION_KEYS: dict[str, tuple[str, ...]] = {
     n: tuple(EFFECT_KEYS[n]) + (("T0",) if n == "temperature_bias" else ()) for n in EFFECTS
 }
 # Keys that must be present (a missing coefficient must not silently become the simulator's default).
-REQUIRED: dict[str, tuple[str, ...]] = {
-    "temperature_bias": ("coeff",), "bias_drift": ("density",), "g_sensitivity": ("coeff",),
-    "time_offset": ("sensor", "seconds"), "saturation": ("sensor", "limit"), "scale_nonlinearity": ("coeff",),
-    "lever_arm": ("x", "y", "z"), "axis_sign": ("sensor", "axis"),
-}
+# (g_sensitivity: coeff, or the full matrix instead)
 INFORMATIVE = ("effect", "clipped_fraction", "walk_final")
-SENSORS_OF = {
-    "temperature_bias": ("gyro", "accel"), "bias_drift": ("gyro", "accel"), "g_sensitivity": ("gyro",),
-    "time_offset": ("gyro", "accel", "mag"), "saturation": ("gyro", "accel"),
-    "scale_nonlinearity": ("gyro", "accel"), "lever_arm": ("accel",), "axis_sign": ("gyro", "accel", "mag"),
-}
+# sensors each effect may act on, and the keys that must be present: the registry's
 PER_AXIS = ("coeff", "density")  # keys that may be a list of 3 when axis is all
 SAVGOL_WINDOW_S = 0.1
 

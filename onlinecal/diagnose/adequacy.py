@@ -7,8 +7,9 @@ Two checks run before any effect is scored:
   right" gives for this motion and noise). A channel whose measured RMS stays more than ``ADEQ_MAX`` times the
   simulated one even after *every* candidate effect has been fitted at once, the candidates explaining less
   than ``ADEQ_EXPLAINED`` of its excess variance (or more than ``ADEQ_GROSS`` times, whatever they explain),
-  cannot be explained by any effect: the baseline does not meet that invariant. Its rows are left out of the effect scoring (effects are scored
-  against the part of the baseline that holds) and the first finding names it (sensor, invariant, how far).
+  cannot be explained by any effect: the baseline does not meet that invariant. Its rows are left out of the
+  effect scoring (effects are scored against the part of the baseline that holds) and the first finding names
+  it (sensor, invariant, how far).
   One pattern is told apart: the accelerometer's kinematic channels (|a| = g in motion, gravity fixed in the
   world) failing while |a| = g holds at the rests is *linear acceleration* of the sensor (thrust in flight, a
   hand carrying the board between poses), not a calibration error: those channels are dropped and the effects
@@ -146,7 +147,7 @@ def _rms(x: Array) -> float:
     return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
 
 
-def _rest_rows(an: Analysis, margin_s: float = 0.3) -> Array:
+def _rest_rows(an: Analysis, margin_s: float = 0.3) -> NDArray[np.bool_]:
     """(n,) True for rows whose time lies inside a rest of their session, ``margin_s`` from its ends (a
     0.2-s block whose centre is near a rest's end still holds motion)."""
     y, ch, t, sid, _ = an.rows
@@ -173,9 +174,9 @@ class _FullFit:
         self.d0 = np.diag(self.G).copy()
         self.pri = P.prior_matrix(full, an.priors)
         self.X = P.Z[:, self.ix] if not np.array_equal(self.ix, np.arange(self.ix.size)) else P.Z[:, : self.ix.size]
-        self.dropped = np.zeros(P.n, bool)
+        self.dropped: NDArray[np.bool_] = np.zeros(P.n, bool)
 
-    def drop(self, rows: Array) -> None:
+    def drop(self, rows: NDArray[np.bool_]) -> None:
         new = rows & ~self.dropped
         if new.any():
             Xd, yd = self.X[new], self.P.Z[new, -1]

@@ -43,6 +43,7 @@ MAX_EFFECTS = 4
 NULL_MARGIN = 15.0  # nats above the re-simulation's own score
 INSEPARABLE_RHO = 0.95  # |Spearman ρ(T, t)| above which temperature and drift are one regressor in practice
 Z_SPREAD = 3.0  # the bar is at least this many standard deviations of the null's held-out gain
+LIN_ACC_RMS = 0.5  # m/s²: |a| − g RMS in rotation beyond which the accelerometer is not used for handedness
 NIS_TOL = 0.05  # the extended UKF's mean NIS may exceed the baseline's by this share before it is refused
 
 
@@ -129,7 +130,17 @@ def _extension(f: Finding, T0: float | None) -> dict[str, Any]:
     return e
 
 
-def _handedness(logs: list[ImuData], cal: Calibration, segs: list[Any]) -> Handedness | None:
+def _accelerated(s: Any, g: float) -> bool:
+    """The calibrated |a| departs from g by more than LIN_ACC_RMS (m/s², RMS) while rotating (|ω| > 0.3 rad/s):
+    specific force other than gravity, so the accelerometer cannot serve as a world-fixed vector."""
+    moving = np.linalg.norm(s.w, axis=1) > 0.3
+    if moving.sum() < 50:
+        return False
+    dev = np.linalg.norm(s.a[moving], axis=1) - g
+    return bool(np.sqrt(np.mean(dev**2)) > LIN_ACC_RMS)
+
+
+def _handedness(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float = G0) -> Handedness | None:
     """Run the handedness test on the longest log with motion (raw frames, biases from the batch)."""
     best = None
     for d, sg in zip(logs, segs, strict=True):
@@ -138,12 +149,14 @@ def _handedness(logs: list[ImuData], cal: Calibration, segs: list[Any]) -> Hande
         rests = [d.gyro[iv.i0:iv.i1] for iv in sg.rests]
         bias = np.median(np.concatenate(rests), axis=0) if rests else (
             cal.gyro.bias if cal.gyro is not None else np.median(d.gyro, axis=0))
-        a = d.acc - (cal.accel.bias if cal.accel is not None else 0.0)
+        a: Array | None = d.acc - (cal.accel.bias if cal.accel is not None else 0.0)
         m = None
         if d.n_mag > 100 and cal.mag is not None:
             mm = d.mag - cal.mag.bias
             m = np.column_stack([np.interp(d.t_imu, d.t_mag, mm[:, k]) for k in range(3)])
         s = prepare(d, cal, sg.rests)
+        if _accelerated(s, g):
+            a = None  # thrust or a carrying hand: the accelerometer is no world-fixed vector in motion
         h = find_axis_sign(s.t, d.gyro, bias, a, m, s.rate)
         if h is not None and (best is None or d.n_imu > best[0]):
             best = (d.n_imu, h)
@@ -187,7 +200,7 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     # -- 1. baseline, handedness, rails ---------------------------------------------------------------
     res = _baseline(logs, g, calibration)
     timing["batch"] = time.perf_counter() - t_start
-    hand = _handedness(logs, res.calibration, res.segmentations)
+    hand = _handedness(logs, res.calibration, res.segmentations, g)
     flip: Finding | None = None
     if hand is not None and hand.sensor is not None:
         from ..extensions import correct
@@ -216,8 +229,8 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
                 raw = d.gyro if st.sensor == "gyro" else d.acc
                 m |= (np.abs(raw) >= st.limit * (1 - 1e-9)).any(axis=1)
             # a clipped rate or force spoils the kinematic rows around it (smoothing, integration)
-            k = 5
-            exclude[i] = np.convolve(m.astype(float), np.ones(2 * k + 1), mode="same") > 0
+            half = 5
+            exclude[i] = np.convolve(m.astype(float), np.ones(2 * half + 1), mode="same") > 0  # type: ignore[assignment]
     # -- 2. residual channels, measured and re-simulated -------------------------------------------
     t0 = time.perf_counter()
     designs = _designs(logs, cal, res.segmentations, g, exclude)
@@ -228,15 +241,12 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     an = analyse(designs, cal, only=[c.key for c in candidates(True, True) if c.effect not in cov.blocked])
     timing["analyse"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sim_logs = []
-    for d in designs:
-        src = logs[d.sid]
-        sim_logs.append(resimulate(d.s, d.clean, cal, src, rng))
+    sim_logs = [resimulate(dz.s, dz.clean, cal, logs[dz.sid], rng) for dz in designs]
     null_designs = []
-    for d, sl in zip(designs, sim_logs, strict=True):
-        s = prepare(sl, cal, d.s.rests)
-        s.restamped = d.s.restamped
-        null_designs.append(Design(s, g, d.sid))
+    for dz, sl in zip(designs, sim_logs, strict=True):
+        ss = prepare(sl, cal, dz.s.rests)
+        ss.restamped = dz.s.restamped
+        null_designs.append(Design(ss, g, dz.sid))
     null = analyse(null_designs, cal, only=[c.key for c in an.cands])
     timing["null"] = time.perf_counter() - t0
     # -- 2c. is the baseline adequate? (invariants it does not meet are named and left out) ---------------
@@ -524,19 +534,20 @@ def _inseparable(findings: list[Finding], an: Analysis, designs: list[Design], t
 
 
 def _honest_gyro_sigma(cal: Calibration, gbr: dict[str, Any]) -> Calibration:
-    """The gyro bias σ widened to the rest-to-rest spread on the axes where the rests disagree by more than
-    twice what noise allows (after the g_sensitivity extension where one was found): until an extension
-    explains the spread, the bias is known no better than it."""
+    """The gyro bias σ widened to cover the rest-to-rest spread (after the g_sensitivity extension where one
+    was found): until an extension explains the spread, the bias is known no better than it."""
     if not gbr or cal.gyro is None:
         return cal
     key = "spread_after_extension" if "spread_after_extension" in gbr else "spread"
     spread, noise = np.asarray(gbr[key]), np.asarray(gbr["noise"])
     sig = np.asarray(gbr["batch_sigma_bias"], float)
-    wide = spread > 2.0 * noise
-    if not wide.any():
-        return cal
-    new = np.where(wide, np.maximum(sig, spread), sig)
+    k = int(gbr["rests"])
+    # rests that agree within noise: the bias is their mean, known to spread/√k; rests that disagree beyond
+    # twice the noise (nothing explains it): the bias at an arbitrary moment is known only to the spread itself
+    new = np.where(spread > 2.0 * noise, np.maximum(sig, spread), np.maximum(sig, spread / np.sqrt(k)))
     gbr["sigma_bias_reported"] = new.tolist()
+    if np.array_equal(new, sig):
+        return cal
     return cal.replace(gyro=cal.gyro.with_sigma({**cal.gyro.sigma, "bias": new}))
 
 

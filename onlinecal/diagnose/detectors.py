@@ -314,7 +314,7 @@ def _rate_map(v: Array, t: Array, w_raw: Array, rate: float) -> Array | None:
     return g.reshape(3, 3)
 
 
-def find_axis_sign(t: Array, raw_g: Array, gyro_bias: Array, a: Array, m: Array | None,
+def find_axis_sign(t: Array, raw_g: Array, gyro_bias: Array, a: Array | None, m: Array | None,
                    rate: float) -> Handedness | None:
     """Handedness of each sensor against the others (Poisson's equation v̇ = v × ω holds in right-handed
     frames only; Q(a×b) = det Q · (Qa × Qb) for orthogonal Q).
@@ -322,10 +322,11 @@ def find_axis_sign(t: Array, raw_g: Array, gyro_bias: Array, a: Array, m: Array 
     For a vector sensor v and the gyro, fit G with v̇ = v × (G ω_raw). A gyro with an inverted axis gives
     det G < 0 against every vector sensor; a vector sensor with an inverted axis j gives G = −F_j·(…), a
     proper rotation by 180° about j — sensors of one board are nominally aligned, so a 180° rate map names
-    the inverted vector sensor and its axis. ``a``, ``m``: bias-removed vectors in their own raw frames.
+    the inverted vector sensor and its axis. ``a``, ``m``: bias-removed vectors in their own raw frames (None:
+    not usable — an accelerometer that sees linear acceleration is no world-fixed vector).
     """
     w = raw_g - gyro_bias
-    maps = {"accel": _rate_map(a, t, w, rate)}
+    maps = {"accel": _rate_map(a, t, w, rate)} if a is not None else {}
     if m is not None:
         maps["mag"] = _rate_map(m, t, w, rate)
     maps = {k: v for k, v in maps.items() if v is not None}

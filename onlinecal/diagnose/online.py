@@ -15,13 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from ..effect_registry import UKF_STATE
 from ..io.base import ImuData
 from ..model import Calibration
 
 # extension (effect, sensor) → the UKF's extra state estimating it (onlinecal.ukf.filter.EXTENSIONS)
-STATE_OF = {("temperature_bias", "gyro"): "temperature_bias:gyro",
-            ("temperature_bias", "accel"): "temperature_bias:accel",
-            ("g_sensitivity", "gyro"): "g_sensitivity"}
+STATE_OF = UKF_STATE
 # not corrected in the data: axis_sign is already undone before the baseline is fitted; bias_drift and
 # saturation have no pointwise inverse (the filter's bias random walk and rail detector cover them)
 NOT_CORRECTED = ("axis_sign", "bias_drift", "saturation")

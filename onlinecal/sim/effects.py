@@ -38,13 +38,13 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
+from ..effect_registry import EFFECTS, REGISTRY  # the one vocabulary (names, sensors, inverse, UKF state)
+
 if TYPE_CHECKING:  # runtime import would be circular (sensors imports this module)
     from .sensors import SimContext
 
 Array = NDArray[np.float64]
 
-EFFECTS = ("temperature_bias", "bias_drift", "g_sensitivity", "time_offset", "saturation",
-           "scale_nonlinearity", "lever_arm", "axis_sign")
 AXES = ("x", "y", "z")
 UNIT = {"gyro": "rad/s", "accel": "m/s^2", "mag": "mag unit"}
 
@@ -436,6 +436,7 @@ EFFECT_CLASSES: dict[str, type[Effect]] = {
                         LeverArm, AxisSign)
 }
 assert tuple(EFFECT_CLASSES) == EFFECTS
+assert all(REGISTRY[n].forward == c.__name__ for n, c in EFFECT_CLASSES.items())
 
 # Keys of each effect and their defaults (None: depends on the sensor, see DEFAULT_LIMIT; axis None = all).
 EFFECT_KEYS: dict[str, dict[str, Any]] = {

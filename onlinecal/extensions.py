@@ -274,3 +274,48 @@ def gsens_matrix(entry: dict[str, Any]) -> Array:
     """The full g-sensitivity G (3, 3; rad/s per m/s², raw gyro ← body specific force) of one calibration
     JSON ``g_sensitivity`` entry: diag(coeff on its axes) + matrix."""
     return np.asarray(validate_extensions({"g_sensitivity": entry})["g_sensitivity"][0]["G"], float)
+
+
+# -- mag_current: magnetometer interference from motor current or throttle (compassmot) ---------------------
+# The effect: raw_mag += k·x, with x the battery current (A) or the throttle (0…1) at the mag's sample instants
+# and k (3,) in the magnetometer's raw unit per A (or at full throttle). Its estimation needs a log that carries
+# current or throttle beside the IMU, which ImuData does not hold yet (see docs/effects.md); the inverse and the
+# autopilot parameters are here so that the export can carry a coefficient found elsewhere (a tethered run).
+MAG_CURRENT_BASES = ("throttle", "current")
+
+
+def remove_mag_current(mag: Array, x: Array, coeff: Array) -> Array:
+    """Inverse of the mag_current effect: ``raw_mag − k·x`` for mag (N, 3) raw, x (N,) current (A) or throttle
+    (0…1) at the same instants, coeff k (3,) raw unit per A or at full throttle."""
+    return np.asarray(mag, float) - np.asarray(x, float)[:, None] * np.asarray(coeff, float)[None, :]
+
+
+def compassmot_params(coeff: Array, basis: str, gauss_per_unit: float,
+                      instance: int = 1) -> dict[str, dict[str, float]]:
+    """The autopilots' motor-interference parameters for a mag_current coefficient k (raw = true + k·x).
+
+    Both autopilots *add* their parameter times x to the reading (ArduPilot: ``cmag = mag + COMPASS_MOT·x``,
+    pymavlink's magfit_compassmot and ArduCopter's compassmot; PX4: ``mag + CAL_MAGn_xCOMP·x``), so the
+    parameter is −k in their units:
+
+    * ArduPilot ``COMPASS_MOT{,2,3}_X/Y/Z`` in milligauss per A (current) or milligauss at full throttle,
+      ``COMPASS_MOTCT`` 1 = throttle, 2 = current;
+    * PX4 ``CAL_MAG{n−1}_XCOMP/YCOMP/ZCOMP`` in gauss per kA (current) or gauss at full throttle,
+      ``CAL_MAG_COMP_TYP`` 1 = throttle, 2 = current.
+
+    ``basis``: "throttle" or "current"; ``gauss_per_unit``: the gauss of one raw magnetometer unit (1 for a log
+    in gauss, 1e-3 for milligauss, 0.01 for µT); ``instance``: compass 1, 2 or 3.
+    Returns ``{"ardupilot": {...}, "px4": {...}}``. Raises ValueError for an unknown basis or instance.
+    """
+    if basis not in MAG_CURRENT_BASES:
+        raise ValueError(f"mag_current basis must be one of {', '.join(MAG_CURRENT_BASES)} (got {basis!r})")
+    if instance not in (1, 2, 3):
+        raise ValueError(f"compass instance must be 1, 2 or 3 (got {instance!r})")
+    k = np.asarray(coeff, float).reshape(3) * float(gauss_per_unit)  # gauss per A, or gauss at full throttle
+    ap_name = "COMPASS_MOT" + ("" if instance == 1 else str(instance))
+    ap = {f"{ap_name}_{ax}": float(-1e3 * k[i]) for i, ax in enumerate("XYZ")}
+    ap["COMPASS_MOTCT"] = 2.0 if basis == "current" else 1.0
+    px_scale = 1e3 if basis == "current" else 1.0  # gauss per kA = 1e3 × gauss per A
+    px = {f"CAL_MAG{instance - 1}_{ax}COMP": float(-px_scale * k[i]) for i, ax in enumerate("XYZ")}
+    px["CAL_MAG_COMP_TYP"] = 2.0 if basis == "current" else 1.0
+    return {"ardupilot": ap, "px4": px}

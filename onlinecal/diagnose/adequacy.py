@@ -11,7 +11,8 @@ Two checks run before any effect is scored:
   effect scoring (effects are scored against the part of the baseline that holds) and the first finding names
   it (sensor, invariant, how far).
   One pattern is told apart: the accelerometer's kinematic channels (|a| = g in motion, gravity fixed in the
-  world) failing while |a| = g holds at the rests is *linear acceleration* of the sensor (thrust in flight, a
+  world) failing while |a| = g holds at the rests, with the candidates (a lever arm among them) explaining less
+  than ``ADEQ_EXPLAINED`` of |a| − g in motion, is *linear acceleration* of the sensor (thrust in flight, a
   hand carrying the board between poses), not a calibration error: those channels are dropped and the effects
   read from them (lever arm, the accelerometer's time offset and non-linearity, its handedness) are reported
   untestable;
@@ -223,30 +224,35 @@ def assess(an: Analysis, null: Analysis) -> Adequacy:
     drop: set[str] = set()
     inad: dict[str, dict[str, Any]] = {}
     lin = None
+    ff = _FullFit(an)
     an_c = chans.get("a_norm")
     if an_c is not None:
         ia = SUBCHANNELS.index("a_norm")
         mr, mm = (P.ch == ia) & rest, (P.ch == ia) & ~rest
         if mr.sum() >= 12 and mm.sum() >= 12:
-            # the baseline's own residual (no re-fit: a nuisance re-fit to the motion rows would move the rests)
+            # the baseline's own residual (no re-fit: a nuisance re-fit to the motion rows would move the rests),
+            # and what every candidate at once (a lever arm's centripetal term among them) leaves of it
             y0 = P.Z[:, -1] * P.sigma[P.ch]
             r_rest, r_move = _rms(y0[mr] - np.median(y0[mr])), _rms(y0[mm] - np.median(y0[mr]))
-            an_c.update({"rms_at_rest": r_rest, "rms_in_motion": r_move,
-                         "ratio_at_rest": r_rest / an_c["rms_simulated"]})
-            if r_move > ADEQ_MAX * max(r_rest, an_c["rms_simulated"]):
-                # |a| = g holds at rest far better than in motion: the sensor is accelerated (thrust, a hand)
+            r_left = _rms(ff.residual()[mm])
+            sim = an_c["rms_simulated"]
+            an_c.update({"rms_at_rest": r_rest, "rms_in_motion": r_move, "rms_in_motion_after_all_candidates": r_left,
+                         "ratio_at_rest": r_rest / sim})
+            explained = 1.0 - (r_left / max(r_move, 1e-300)) ** 2
+            an_c["explained_in_motion"] = explained
+            if r_move > ADEQ_MAX * max(r_rest, sim) and explained < ADEQ_EXPLAINED:
+                # |a| = g holds at rest far better than in motion, and no candidate explains the motion's
+                # excess: the sensor is accelerated (thrust, a carrying hand)
                 kin = sorted(set(ACCEL_KINEMATIC) & set(chans), key=SUBCHANNELS.index)
                 worst = max(kin, key=lambda nm: chans[nm]["ratio"])
                 lin = {"channels": kin, "worst": worst, "ratio": chans[worst]["ratio"],
                        "a_norm_rms_m_s2": r_move, "a_norm_rms_at_rest_m_s2": r_rest,
-                       "a_norm_noise_m_s2": an_c["rms_simulated"]}
+                       "a_norm_noise_m_s2": sim}
                 # the dip channel reads gravity's direction from the accelerometer too
                 drop |= set(kin) | ({"dip"} & set(chans))
-                if r_rest / an_c["rms_simulated"] > ADEQ_MAX and r_rest > ACC_REST_TOL:
+                if r_rest / sim > ADEQ_MAX and r_rest > ACC_REST_TOL:
                     inad["a_norm"] = {"sensor": "accel", "invariant": "|a| = g at rest", "rows": int(mr.sum()),
-                                      "channels": {"a_norm (rests)": r_rest / an_c["rms_simulated"]},
-                                      "ratio": r_rest / an_c["rms_simulated"]}
-    ff = _FullFit(an)
+                                      "channels": {"a_norm (rests)": r_rest / sim}, "ratio": r_rest / sim}
     for _ in range(len(INVARIANTS)):
         keep = ~np.isin(P.ch, [SUBCHANNELS.index(c) for c in drop])
         if keep.sum() < 12:

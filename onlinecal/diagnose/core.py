@@ -309,8 +309,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     # structural findings lead: an inverted axis or a rail is undone/censored before the baseline is fitted,
     # so every other finding is conditional on them; then the linear effects by held-out gain
     structural = ("baseline_inadequate", "axis_sign", "saturation")
-    findings.sort(key=lambda f: (not f.significant, f.effect != "baseline_inadequate", f.effect not in structural,
-                                 -f.score if f.significant else 0.0))
+    # (an axis flip and a rail lead even a failed invariant: they are undone or censored before the baseline)
+    findings.sort(key=lambda f: (not f.significant, f.effect not in structural,
+                                 f.effect not in ("axis_sign", "saturation"), -f.score if f.significant else 0.0))
     # -- 5. extended calibration, statistics, simulator check -------------------------------------------
     T0 = _rest_temperature(designs)
     exts: dict[str, Any] = {}

@@ -83,7 +83,7 @@ def _entry(name: str, d: Any) -> dict[str, Any]:
     if d.get("effect", name) != name:
         raise ValueError(f"extension {name}: entry says effect {d['effect']!r}")
     for k in REQUIRED[name]:
-        if k not in d and not (name == "g_sensitivity" and k == "coeff" and "matrix" in d):
+        if k not in d and not (name == "g_sensitivity" and k == "coeff" and d.get("matrix") is not None):
             raise ValueError(f"extension {name}: missing key {k!r}")
     defaults = EFFECT_KEYS[name]
     sensor = d.get("sensor", defaults.get("sensor", "accel"))
@@ -102,6 +102,8 @@ def _entry(name: str, d: Any) -> dict[str, Any]:
         if k in ("sensor", "axis") or k not in d:
             continue
         v = d[k]
+        if k == "matrix" and v is None:  # a diagonal-only description (the simulator's truth)
+            continue
         if k == "matrix":
             try:
                 m = np.asarray(v, dtype=float)

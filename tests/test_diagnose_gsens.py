@@ -24,8 +24,9 @@ def test_matrix_effect_spec_round_trip_and_describe() -> None:
     assert np.allclose(d["matrix"], e.G()) and d["coeff"] == 0.0
     with pytest.raises(ValueError, match="matrix"):
         parse_effect("g_sensitivity:matrix=1;2;3")
-    # the diagonal form keeps its old description (no matrix key)
-    assert "matrix" not in GSensitivity(coeff=1e-4).describe()
+    # the diagonal form: no matrix, and its description round-trips
+    dd = GSensitivity(coeff=1e-4).describe()
+    assert dd["matrix"] is None and parse_effect(GSensitivity(coeff=1e-4).spec()) == GSensitivity(coeff=1e-4)
 
 
 def test_extension_inverts_the_full_matrix() -> None:

@@ -195,7 +195,14 @@ class _FullFit:
         G[:, dead] = 0.0
         c[dead] = 0.0
         A = G if self.pri is None else G + self.pri
-        beta = solve(A, c)[0]
+        try:
+            beta = solve(A, c)[0]
+        except np.linalg.LinAlgError:  # the subtraction lost definiteness: build the kept rows' Gram afresh
+            keep = ~self.dropped
+            Xk = self.X[keep]
+            self.G, self.c = Xk.T @ Xk, Xk.T @ self.P.Z[keep, -1]
+            A = self.G if self.pri is None else self.G + self.pri
+            beta = solve(A, self.c)[0]
         r = (self.P.Z[:, -1] - self.X @ beta) * self.P.sigma[self.P.ch]
         r[self.dropped] = np.nan
         return r

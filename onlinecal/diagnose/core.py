@@ -4,9 +4,13 @@ and its measured gain (the stages are the sibling modules; this one runs them in
 1. baseline: the batch pipeline (paper Sec. III) — after undoing an inverted axis, if the handedness test
    finds one, and with clipped samples censored, if a rail is found;
 2. residual channels of the baseline (:mod:`.regressors`) and the re-simulated session (:mod:`.resim`);
+   the data requirements of each effect (:func:`.adequacy.coverage`: rate, duration, excitation — an effect the
+   data cannot carry is not scored) and the adequacy of the baseline (:func:`.adequacy.assess`: an invariant
+   it does not meet is the first finding, ``baseline_inadequate``, and its rows are left out; linear
+   acceleration sets the accelerometer's kinematic channels aside);
 3. every candidate scored by its held-out log-likelihood gain (:mod:`.score`); the same score on the
    re-simulation is the null; forward selection keeps a candidate while its gain clears
-   max(BIC penalty, null + margin);
+   max(BIC penalty, null + margin, 3 × the null gain's spread over time blocks);
 4. the selected effects' parameters (the spec's keys) and the extended calibration (``extensions``);
 5. the simulator with the fitted extension, checked against the measured residual statistics;
 6. the UKF (:mod:`.online`) from the baseline, and again with the extension (as extra states where the UKF

@@ -76,7 +76,7 @@ def run_ukf(logs: list[ImuData], cal: Calibration, extensions: dict[str, Any] | 
         kept = []
         for e, raw in zip(entries, _raw_entries(extensions, name), strict=True):
             st = STATE_OF.get((name, e["sensor"]))
-            if name == "g_sensitivity" and "matrix" in raw:
+            if name == "g_sensitivity" and raw.get("matrix") is not None:
                 st = None  # the filter's g_sensitivity state is diagonal: a full matrix is applied to the data
             if st in avail:
                 states.append(st)

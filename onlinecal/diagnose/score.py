@@ -223,6 +223,8 @@ class Problem:
         return float(np.sqrt(B) * np.std(db, ddof=1))
 
     def gain(self, base: list[str], ext: list[str], priors: dict[str, Array] | None = None) -> Gain:
+        if self.n == 0:  # every row left out (no invariant the baseline meets): nothing to score
+            return Gain(0.0, 0.0, float("nan"), float("nan"), 0.0, 0, 0.0)
         ll0, rss0, n = self.heldout(base, priors)
         ll1, rss1, _ = self.heldout(base + ext, priors)
         k = self.dof(base + ext, priors) - self.dof(base, priors)

@@ -236,10 +236,7 @@ class GSensitivity(Effect):
         return G
 
     def params(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"coeff": self.coeff}
-        if self.matrix is not None:
-            out["matrix"] = [list(r) for r in self.matrix]
-        return out
+        return {"coeff": self.coeff, "matrix": None if self.matrix is None else [list(r) for r in self.matrix]}
 
     def apply(self, ctx: SimContext) -> None:
         ctx.gyro += ctx.motion["gyro"].f @ self.G().T

@@ -35,7 +35,12 @@ CAVEATS = (
     "the read times of each burst (gyro, accel and mag read in turn, stamped once), not sampling instants, so a "
     "time_offset there may be the logger's, not the sensor's. Ferraris has neither magnetometer nor temperature, "
     "so time_offset is only relative (accel against gyro) and temperature_bias is untestable. Effects counted "
-    "on single MARG files share one campaign calibration, so they are not independent of each other.")
+    "on single MARG files share one campaign calibration, so they are not independent of each other. The "
+    "adequacy check compares each invariant with the re-simulation, whose rests are perfectly still: on the "
+    "hand-held MARG files a 'rest' is held by hand, so the gyro's rest channel and the field's dip and norm "
+    "(campaign calibration applied to each file) exceed it by 10-140x and the verdict is baseline_inadequate. "
+    "That statement is true of the data (the invariants do not hold to noise level there), but it does not "
+    "tell hand tremor from a wrong calibration; a 'rests not still' classification is not implemented.")
 
 DATA = ROOT.parent / "shared" / "data"
 OUT = ROOT / "docs" / "findings.md"

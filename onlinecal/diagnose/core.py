@@ -216,6 +216,11 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         flip = Finding("axis_sign", hand.sensor, hand.axis, 0.0, True, {}, {}, hand.evidence)
         flip.parameters = {"rate_map_angles_deg": hand.angles_deg}
         flip._before = before  # type: ignore[attr-defined]
+    elif hand is None and any(_accelerated(prepare(d, res.calibration, sg.rests), g)
+                              for d, sg in zip(logs, res.segmentations, strict=True) if d.n_imu >= 200):
+        untestable.append("axis_sign: the accelerometer is accelerated in motion (|a| − g RMS > "
+                          f"{LIN_ACC_RMS:g} m/s²) and no magnetometer is calibrated: no world-fixed vector to "
+                          "compare the gyro's handedness with")
     elif hand is None:
         untestable.append("axis_sign: too little rotation (|ω| > 0.3 rad/s) to compare the sensors' handedness")
     cal = res.calibration

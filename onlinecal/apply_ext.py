@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .effect_registry import LIVE_POINTWISE, NOT_REMOVABLE  # noqa: F401  (LIVE_POINTWISE re-exported)
 from .extensions import correct, validate_extensions
 from .io.base import ImuData
 from .model import Calibration
@@ -29,7 +30,7 @@ NOT_APPLIED = {
                   "(the UKF's own bias random walk applies)",
     "saturation": "saturation is not corrected: the UKF's rail detector skips clipped samples",
 }
-LIVE_POINTWISE = ("temperature_bias", "g_sensitivity", "scale_nonlinearity", "axis_sign", "lever_arm")
+assert tuple(NOT_APPLIED) == NOT_REMOVABLE
 
 
 def _applied(ext: dict[str, list[dict[str, Any]]]) -> list[str]:

@@ -533,9 +533,10 @@ def cmd_diagnose(a: argparse.Namespace) -> int:
     _check_out(a.json, "--json")
     _check_out(a.report, "--report", directory=True)
     out = _human(a.json)
+    init = _load_cal(a.init) if a.init else None  # a bad --init file is refused before the logs are read
     logs = _read_logs(a.logs, a)
     with spinner("diagnose (batch, detectors, re-simulation, UKF)"):
-        diag = diagnose(logs, g=a.gravity, seed=a.seed)
+        diag = diagnose(logs, g=a.gravity, seed=a.seed, calibration=init)
     print(f"verdict: {diag.verdict}", file=out)
     for f in diag.findings:
         if not f.significant:
@@ -843,6 +844,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", default=None, metavar="DIR", help="directory for report.md and plots")
     p.add_argument("--gravity", type=_POS, default=9.80665, metavar="G", help="local g, m/s^2")
     p.add_argument("--seed", type=_SEED, default=0, help="seed of the re-simulation's noise")
+    p.add_argument("--init", default=None, metavar="CAL.json",
+                   help="baseline calibration (e.g. a bench calibration) instead of the batch fit on these logs")
     _add_scales(p)
     p.set_defaults(fn=cmd_diagnose)
 

@@ -21,7 +21,8 @@ time_offset           mag: re-stamped ``t_mag − seconds``; gyro/accel share th
                       sensor is resampled (cubic spline) at ``t_imu + seconds`` instead
 lever_arm             ``raw_acc −= M_acc⁻¹·(ω̇×r + ω×(ω×r))``, ω = the calibrated gyro, ω̇ its
                       Savitzky–Golay derivative (cubic, 0.1 s window); needs the calibration
-g_sensitivity         ``raw_gyro_i −= coeff_i·f_i``, f = the calibrated (and lever-arm corrected)
+g_sensitivity         ``raw_gyro −= G·f``, G = diag(coeff) + matrix (3×3, the full g-sensitivity;
+                      row = gyro axis, column = force axis), f = the calibrated (and lever-arm corrected)
                       accelerometer in the body frame, m/s² — the effect adds coeff·f_true(B) to the
                       gyro's raw value in rad/s, so the correction is in raw gyro units with f in B;
                       needs the calibration's accelerometer
@@ -47,6 +48,7 @@ from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 from scipy.signal import savgol_filter
 
+from .effect_registry import REQUIRED, SENSORS_OF
 from .io.base import ImuData
 from .model import Calibration
 from .sim.effects import AXES, EFFECT_KEYS, EFFECTS, LeverArm
@@ -58,17 +60,9 @@ EXTENSION_KEYS: dict[str, tuple[str, ...]] = {
     n: tuple(EFFECT_KEYS[n]) + (("T0",) if n == "temperature_bias" else ()) for n in EFFECTS
 }
 # Keys that must be present (a missing coefficient must not silently become the simulator's default).
-REQUIRED: dict[str, tuple[str, ...]] = {
-    "temperature_bias": ("coeff",), "bias_drift": ("density",), "g_sensitivity": ("coeff",),
-    "time_offset": ("sensor", "seconds"), "saturation": ("sensor", "limit"), "scale_nonlinearity": ("coeff",),
-    "lever_arm": ("x", "y", "z"), "axis_sign": ("sensor", "axis"),
-}
+# (g_sensitivity: coeff, or the full matrix instead)
 INFORMATIVE = ("effect", "clipped_fraction", "walk_final")
-SENSORS_OF = {
-    "temperature_bias": ("gyro", "accel"), "bias_drift": ("gyro", "accel"), "g_sensitivity": ("gyro",),
-    "time_offset": ("gyro", "accel", "mag"), "saturation": ("gyro", "accel"),
-    "scale_nonlinearity": ("gyro", "accel"), "lever_arm": ("accel",), "axis_sign": ("gyro", "accel", "mag"),
-}
+# sensors each effect may act on, and the keys that must be present: the registry's
 PER_AXIS = ("coeff", "density")  # keys that may be a list of 3 when axis is all
 SAVGOL_WINDOW_S = 0.1
 
@@ -89,7 +83,7 @@ def _entry(name: str, d: Any) -> dict[str, Any]:
     if d.get("effect", name) != name:
         raise ValueError(f"extension {name}: entry says effect {d['effect']!r}")
     for k in REQUIRED[name]:
-        if k not in d:
+        if k not in d and not (name == "g_sensitivity" and k == "coeff" and d.get("matrix") is not None):
             raise ValueError(f"extension {name}: missing key {k!r}")
     defaults = EFFECT_KEYS[name]
     sensor = d.get("sensor", defaults.get("sensor", "accel"))
@@ -108,6 +102,17 @@ def _entry(name: str, d: Any) -> dict[str, Any]:
         if k in ("sensor", "axis") or k not in d:
             continue
         v = d[k]
+        if k == "matrix" and v is None:  # a diagonal-only description (the simulator's truth)
+            continue
+        if k == "matrix":
+            try:
+                m = np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                m = np.zeros(0)
+            if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+                raise ValueError(f"extension {name}: matrix must be 3×3 finite numbers (got {v!r})")
+            out[k] = m
+            continue
         if k in PER_AXIS and isinstance(v, (list, tuple)):
             if axis is not None or len(v) != 3:
                 raise ValueError(f"extension {name}: {k} may be a list of 3 only with axis all")
@@ -118,6 +123,9 @@ def _entry(name: str, d: Any) -> dict[str, Any]:
             out[k] = _num(name, k, v)
     if name == "temperature_bias":
         out.setdefault("T0", 25.0)
+    if name == "g_sensitivity":
+        out.setdefault("coeff", np.zeros(3))
+        out["G"] = np.diag(out["coeff"]) + out.get("matrix", np.zeros((3, 3)))
     if name == "bias_drift" and np.any(out["density"] < 0):
         raise ValueError("extension bias_drift: density must be >= 0")
     if name == "saturation" and out["limit"] <= 0:
@@ -236,7 +244,7 @@ def correct(data: ImuData, extensions: dict[str, Any] | None, calibration: Calib
     if ext.get("g_sensitivity") and calibration is not None and calibration.accel is not None:
         f = calibration.accel.apply(raw["accel"])
         for e in ext["g_sensitivity"]:
-            raw["gyro"] -= e["coeff"] * f
+            raw["gyro"] -= f @ e["G"].T
         if r is not None:  # second pass: the lever arm with the g-corrected gyro
             raw["accel"] = acc0 - _lever(data.t_imu, raw["gyro"], calibration, r)
     return ImuData(np.array(data.t_imu, float), raw["gyro"], raw["accel"], np.array(data.temp, float), t_mag,
@@ -262,3 +270,54 @@ def clipped_mask(data: ImuData, extensions: dict[str, Any] | None, rtol: float =
         x = data.gyro if e["sensor"] == "gyro" else data.acc
         out[e["sensor"]] = np.abs(np.asarray(x, float)) >= e["limit"] * (1 - rtol)
     return out
+
+
+def gsens_matrix(entry: dict[str, Any]) -> Array:
+    """The full g-sensitivity G (3, 3; rad/s per m/s², raw gyro ← body specific force) of one calibration
+    JSON ``g_sensitivity`` entry: diag(coeff on its axes) + matrix."""
+    return np.asarray(validate_extensions({"g_sensitivity": entry})["g_sensitivity"][0]["G"], float)
+
+
+# -- mag_current: magnetometer interference from motor current or throttle (compassmot) ---------------------
+# The effect: raw_mag += k·x, with x the battery current (A) or the throttle (0…1) at the mag's sample instants
+# and k (3,) in the magnetometer's raw unit per A (or at full throttle). Its estimation needs a log that carries
+# current or throttle beside the IMU, which ImuData does not hold yet (see docs/effects.md); the inverse and the
+# autopilot parameters are here so that the export can carry a coefficient found elsewhere (a tethered run).
+MAG_CURRENT_BASES = ("throttle", "current")
+
+
+def remove_mag_current(mag: Array, x: Array, coeff: Array) -> Array:
+    """Inverse of the mag_current effect: ``raw_mag − k·x`` for mag (N, 3) raw, x (N,) current (A) or throttle
+    (0…1) at the same instants, coeff k (3,) raw unit per A or at full throttle."""
+    return np.asarray(mag, float) - np.asarray(x, float)[:, None] * np.asarray(coeff, float)[None, :]
+
+
+def compassmot_params(coeff: Array, basis: str, gauss_per_unit: float,
+                      instance: int = 1) -> dict[str, dict[str, float]]:
+    """The autopilots' motor-interference parameters for a mag_current coefficient k (raw = true + k·x).
+
+    Both autopilots *add* their parameter times x to the reading (ArduPilot: ``cmag = mag + COMPASS_MOT·x``,
+    pymavlink's magfit_compassmot and ArduCopter's compassmot; PX4: ``mag + CAL_MAGn_xCOMP·x``), so the
+    parameter is −k in their units:
+
+    * ArduPilot ``COMPASS_MOT{,2,3}_X/Y/Z`` in milligauss per A (current) or milligauss at full throttle,
+      ``COMPASS_MOTCT`` 1 = throttle, 2 = current;
+    * PX4 ``CAL_MAG{n−1}_XCOMP/YCOMP/ZCOMP`` in gauss per kA (current) or gauss at full throttle,
+      ``CAL_MAG_COMP_TYP`` 1 = throttle, 2 = current.
+
+    ``basis``: "throttle" or "current"; ``gauss_per_unit``: the gauss of one raw magnetometer unit (1 for a log
+    in gauss, 1e-3 for milligauss, 0.01 for µT); ``instance``: compass 1, 2 or 3.
+    Returns ``{"ardupilot": {...}, "px4": {...}}``. Raises ValueError for an unknown basis or instance.
+    """
+    if basis not in MAG_CURRENT_BASES:
+        raise ValueError(f"mag_current basis must be one of {', '.join(MAG_CURRENT_BASES)} (got {basis!r})")
+    if instance not in (1, 2, 3):
+        raise ValueError(f"compass instance must be 1, 2 or 3 (got {instance!r})")
+    k = np.asarray(coeff, float).reshape(3) * float(gauss_per_unit)  # gauss per A, or gauss at full throttle
+    ap_name = "COMPASS_MOT" + ("" if instance == 1 else str(instance))
+    ap = {f"{ap_name}_{ax}": float(-1e3 * k[i]) for i, ax in enumerate("XYZ")}
+    ap["COMPASS_MOTCT"] = 2.0 if basis == "current" else 1.0
+    px_scale = 1e3 if basis == "current" else 1.0  # gauss per kA = 1e3 × gauss per A
+    px = {f"CAL_MAG{instance - 1}_{ax}COMP": float(-px_scale * k[i]) for i, ax in enumerate("XYZ")}
+    px["CAL_MAG_COMP_TYP"] = 2.0 if basis == "current" else 1.0
+    return {"ardupilot": ap, "px4": px}

@@ -18,7 +18,7 @@ from scipy.linalg import cho_factor, cho_solve
 from ..model import Calibration
 from .detectors import Candidate, candidates, drift_knots, drift_prior
 from .regressors import SUBCHANNELS, Design, nuisance
-from .score import Gain, Problem, folds, robust_sigma, solve
+from .score import FOLD_S, Gain, Problem, folds, robust_sigma, solve
 
 Array = NDArray[np.float64]
 Q_GRID = {"gyro": np.logspace(-6.5, -2.0, 10), "accel": np.logspace(-5.5, -1.0, 10)}
@@ -50,6 +50,8 @@ class Analysis:
     q: dict[str, Array]  # drift candidate key → ML density per axis
     q_lr: dict[str, Array]  # drift candidate key → 2·Δ log ML for dropping each axis
     first: dict[str, Gain] = field(default_factory=dict)  # each candidate against the baseline alone
+    rows: Any = None  # (y, ch, t, sid, cols) before any channel is dropped (for :func:`restrict`)
+    dropped: tuple[str, ...] = ()  # sub-channels left out (the baseline does not meet them)
 
     def score(self, base: list[str], key: str) -> Gain:
         return self.problem.gain(base, self.blocks[key], self.priors)
@@ -141,13 +143,16 @@ def _blockdiag(ms: list[Array]) -> Array:
     return out
 
 
-def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = None) -> Analysis:
-    """Rows, nuisance, candidate columns, whitening, drift densities and every candidate's first-step gain."""
+def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = None,
+            drop: tuple[str, ...] = ()) -> Analysis:
+    """Rows, nuisance, candidate columns, whitening, drift densities and every candidate's first-step gain.
+
+    ``only``: the candidate keys to build (None: all the data can test); ``drop``: sub-channels whose rows
+    are left out (an invariant the baseline does not meet, :func:`restrict`)."""
     y = np.concatenate([d.y for d in designs])
     ch = np.concatenate([d.ch for d in designs])
     t = np.concatenate([d.t for d in designs])
     sid = np.concatenate([np.full(d.y.size, d.sid) for d in designs])
-    fold = folds(t, sid)
     has_mag = any(d.mhat is not None for d in designs)
     has_temp = any(d.s.has_temp for d in designs)
     cands = [c for c in candidates(has_mag, has_temp) if only is None or c.key in only]
@@ -170,11 +175,28 @@ def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = No
             blocks[c.key] = [c.key]
     for k in cols:  # a column undefined somewhere (no clean signal there) carries no information there
         cols[k] = np.nan_to_num(cols[k], nan=0.0, posinf=0.0, neginf=0.0)
+    return _finish(designs, cal, cands, blocks, (y, ch, t, sid, cols), drop)
+
+
+def restrict(an: Analysis, drop: tuple[str, ...]) -> Analysis:
+    """The same analysis with the rows of the sub-channels ``drop`` left out (columns are not rebuilt; the
+    whitening and the drift densities are refitted on the rows kept)."""
+    return _finish(an.designs, an.cal, an.cands, an.blocks, an.rows, tuple(drop))
+
+
+def _finish(designs: list[Design], cal: Calibration, cands: list[Candidate], blocks: dict[str, list[str]],
+            rows: tuple[Array, Array, Array, Array, dict[str, Array]], drop: tuple[str, ...]) -> Analysis:
+    y, ch, t, sid, cols = rows
+    keep = ~np.isin(ch, [SUBCHANNELS.index(c) for c in drop])
+    if not keep.all():
+        y, ch, t, sid = y[keep], ch[keep], t[keep], sid[keep]
+        cols = {k: v[keep] for k, v in cols.items()}
+    fold = folds(t, sid)
     # whitening σ from the baseline's residual over all rows
     X0 = cols["nuisance"]
     beta = solve(X0.T @ X0, X0.T @ y)[0]
     sigma = robust_sigma(y - X0 @ beta, ch, len(SUBCHANNELS))
-    P = Problem.build(y, ch, t, fold, sigma, cols)
+    P = Problem.build(y, ch, t, fold, sigma, cols, np.floor(t / FOLD_S).astype(int) * 1000 + sid)
     priors: dict[str, Array] = {}
     q: dict[str, Array] = {}
     q_lr: dict[str, Array] = {}
@@ -184,7 +206,7 @@ def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = No
             dts = [float(np.diff(drift_knots(d))[0]) for d in designs]
             q[c.key], q_lr[c.key], pri = _fit_density(P, ["nuisance"], blocks[c.key], Ks, dts, Q_GRID[c.sensor])
             priors.update(pri)
-    an = Analysis(P, designs, cal, cands, blocks, priors, q, q_lr)
+    an = Analysis(P, designs, cal, cands, blocks, priors, q, q_lr, rows=rows, dropped=drop)
     for c in cands:
         an.first[c.key] = an.score(["nuisance"], c.key)
     return an

@@ -4,9 +4,13 @@ and its measured gain (the stages are the sibling modules; this one runs them in
 1. baseline: the batch pipeline (paper Sec. III) — after undoing an inverted axis, if the handedness test
    finds one, and with clipped samples censored, if a rail is found;
 2. residual channels of the baseline (:mod:`.regressors`) and the re-simulated session (:mod:`.resim`);
+   the data requirements of each effect (:func:`.adequacy.coverage`: rate, duration, excitation — an effect the
+   data cannot carry is not scored) and the adequacy of the baseline (:func:`.adequacy.assess`: an invariant
+   it does not meet is the first finding, ``baseline_inadequate``, and its rows are left out; linear
+   acceleration sets the accelerometer's kinematic channels aside);
 3. every candidate scored by its held-out log-likelihood gain (:mod:`.score`); the same score on the
    re-simulation is the null; forward selection keeps a candidate while its gain clears
-   max(BIC penalty, null + margin);
+   max(BIC penalty, null + margin, 3 × the null gain's spread over time blocks);
 4. the selected effects' parameters (the spec's keys) and the extended calibration (``extensions``);
 5. the simulator with the fitted extension, checked against the measured residual statistics;
 6. the UKF (:mod:`.online`) from the baseline, and again with the extension (as extra states where the UKF
@@ -29,8 +33,9 @@ from ..batch.segment import noise_floors, segment
 from ..io.base import ImuData
 from ..model import Calibration
 from ..specs import G0
-from .analysis import Analysis, analyse, channel_mask
-from .detectors import Handedness, Saturated, find_axis_sign, find_saturation
+from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, MIN_RATE_HZ, REQUIRES, Adequacy, assess, coverage
+from .analysis import Analysis, analyse, channel_mask, restrict
+from .detectors import Handedness, Saturated, candidates, find_axis_sign, find_saturation
 from .motion import prepare
 from .regressors import SUBCHANNELS, Design
 from .resim import resimulate
@@ -40,6 +45,10 @@ from .stats import channel_stats, rest_stats
 Array = NDArray[np.float64]
 MAX_EFFECTS = 4
 NULL_MARGIN = 15.0  # nats above the re-simulation's own score
+INSEPARABLE_RHO = 0.95  # |Spearman ρ(T, t)| above which temperature and drift are one regressor in practice
+Z_SPREAD = 3.0  # the bar is at least this many standard deviations of the null's held-out gain
+LIN_ACC_RMS = 0.5  # m/s²: |a| − g RMS in rotation beyond which the accelerometer is not used for handedness
+NIS_TOL = 0.05  # the extended UKF's mean NIS may exceed the baseline's by this share before it is refused
 
 
 def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
@@ -53,9 +62,14 @@ def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
     return out
 
 
-def _threshold(k: float, n: int, null: float) -> float:
-    """Significance bar (nats): the BIC penalty ½·k·ln n, and the re-simulation's score plus a margin."""
-    return max(0.5 * k * np.log(max(n, 2)), null + NULL_MARGIN)
+def _threshold(k: float, n: int, null: float, spread: float = 0.0) -> float:
+    """Significance bar (nats): the largest of the BIC penalty ½·k·ln n, the re-simulation's score plus a
+    margin, and Z_SPREAD standard deviations of the candidate's held-out gain over the time blocks of the
+    re-simulated session (:meth:`.score.Problem.spread`; the null: this motion and noise, no effect) — a
+    candidate that only fits the noise scores within that spread of zero with either sign, so the bar is
+    calibrated to it (one-sided 3σ: ≈ 0.1 % per candidate, ≈ 1 % per session over the ~9 candidates). The
+    measured session's own spread is not used: a real effect concentrated in a few blocks inflates it."""
+    return max(0.5 * k * np.log(max(n, 2)), null + NULL_MARGIN, Z_SPREAD * spread)
 
 
 def _k(an: Analysis, key: str, gain: Any) -> float:
@@ -69,7 +83,8 @@ EVIDENCE = {
                         "time blocks than a bias that wanders freely",
     "bias_drift": "the {sensor} bias wanders between rests (random walk of density {density:.3g}/√s by maximum "
                   "marginal likelihood), more than temperature explains",
-    "g_sensitivity": "the gyro's rest readings change with the direction of gravity across the static positions",
+    "g_sensitivity": "the gyro's rest readings change with the direction of gravity across the static positions "
+                     "(full 3×3 G, raw gyro ← G·f)",
     "scale_nonlinearity": "the {sensor} error grows with the square of the rate (fast turns vs slow ones), beyond "
                           "what a linear scale absorbs",
     "lever_arm": "accelerometer residuals follow ω̇×r + ω×(ω×r) during turns (|f| ≠ g while rotating)",
@@ -78,15 +93,17 @@ EVIDENCE = {
 
 
 def _finding(an: Analysis, model: list[str], key: str, gain: Any, thr: float, null: float,
-             significant: bool) -> Finding:
+             significant: bool, null_spread: float = 0.0) -> Finding:
     cand = next(c for c in an.cands if c.key == key)
     params = an.params(model, key)
     sensor = params.pop("sensor", cand.sensor)
     axis = params.pop("axis", None)
     txt = EVIDENCE.get(cand.effect, "").format(sensor=sensor, **{k: v for k, v in params.items()
                                                                    if isinstance(v, float)})
+    req = f" Data needed: {REQUIRES[cand.effect]}." if cand.effect in REQUIRES else ""
     ev = (f"{txt}; held-out log-likelihood gain {gain.loglik_gain:.1f} nats against a bar of {thr:.1f} "
-          f"(re-simulation without effects: {null:.1f}).")
+          f"(re-simulation without effects: {null:.1f} ± {null_spread:.1f})."
+          f"{req}")
     return Finding(cand.effect, sensor, axis, float(gain.loglik_gain), significant, params, gain.to_dict(), ev,
                    thr, null)
 
@@ -102,6 +119,8 @@ def _extension(f: Finding, T0: float | None) -> dict[str, Any]:
             e["T0"] = T0 if T0 is not None else 25.0
         if f.effect == "g_sensitivity":
             e.pop("sensor")
+            if p.get("full"):  # cross-axis terms: the full matrix (its diagonal included), no separate coeff
+                e = {"axis": None, "matrix": p["matrix"]}
     elif f.effect == "bias_drift":
         e = {"sensor": f.sensor, "axis": f.axis, "density": p["density"]}
     elif f.effect == "lever_arm":
@@ -115,7 +134,17 @@ def _extension(f: Finding, T0: float | None) -> dict[str, Any]:
     return e
 
 
-def _handedness(logs: list[ImuData], cal: Calibration, segs: list[Any]) -> Handedness | None:
+def _accelerated(s: Any, g: float) -> bool:
+    """The calibrated |a| departs from g by more than LIN_ACC_RMS (m/s², RMS) while rotating (|ω| > 0.3 rad/s):
+    specific force other than gravity, so the accelerometer cannot serve as a world-fixed vector."""
+    moving = np.linalg.norm(s.w, axis=1) > 0.3
+    if moving.sum() < 50:
+        return False
+    dev = np.linalg.norm(s.a[moving], axis=1) - g
+    return bool(np.sqrt(np.mean(dev**2)) > LIN_ACC_RMS)
+
+
+def _handedness(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float = G0) -> Handedness | None:
     """Run the handedness test on the longest log with motion (raw frames, biases from the batch)."""
     best = None
     for d, sg in zip(logs, segs, strict=True):
@@ -124,12 +153,14 @@ def _handedness(logs: list[ImuData], cal: Calibration, segs: list[Any]) -> Hande
         rests = [d.gyro[iv.i0:iv.i1] for iv in sg.rests]
         bias = np.median(np.concatenate(rests), axis=0) if rests else (
             cal.gyro.bias if cal.gyro is not None else np.median(d.gyro, axis=0))
-        a = d.acc - (cal.accel.bias if cal.accel is not None else 0.0)
+        a: Array | None = d.acc - (cal.accel.bias if cal.accel is not None else 0.0)
         m = None
         if d.n_mag > 100 and cal.mag is not None:
             mm = d.mag - cal.mag.bias
             m = np.column_stack([np.interp(d.t_imu, d.t_mag, mm[:, k]) for k in range(3)])
         s = prepare(d, cal, sg.rests)
+        if _accelerated(s, g):
+            a = None  # thrust or a carrying hand: the accelerometer is no world-fixed vector in motion
         h = find_axis_sign(s.t, d.gyro, bias, a, m, s.rate)
         if h is not None and (best is None or d.n_imu > best[0]):
             best = (d.n_imu, h)
@@ -173,7 +204,7 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     # -- 1. baseline, handedness, rails ---------------------------------------------------------------
     res = _baseline(logs, g, calibration)
     timing["batch"] = time.perf_counter() - t_start
-    hand = _handedness(logs, res.calibration, res.segmentations)
+    hand = _handedness(logs, res.calibration, res.segmentations, g)
     flip: Finding | None = None
     if hand is not None and hand.sensor is not None:
         from ..extensions import correct
@@ -185,6 +216,11 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         flip = Finding("axis_sign", hand.sensor, hand.axis, 0.0, True, {}, {}, hand.evidence)
         flip.parameters = {"rate_map_angles_deg": hand.angles_deg}
         flip._before = before  # type: ignore[attr-defined]
+    elif hand is None and any(_accelerated(prepare(d, res.calibration, sg.rests), g)
+                              for d, sg in zip(logs, res.segmentations, strict=True) if d.n_imu >= 200):
+        untestable.append("axis_sign: the accelerometer is accelerated in motion (|a| − g RMS > "
+                          f"{LIN_ACC_RMS:g} m/s²) and no magnetometer is calibrated: no world-fixed vector to "
+                          "compare the gyro's handedness with")
     elif hand is None:
         untestable.append("axis_sign: too little rotation (|ω| > 0.3 rad/s) to compare the sensors' handedness")
     cal = res.calibration
@@ -202,33 +238,53 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
                 raw = d.gyro if st.sensor == "gyro" else d.acc
                 m |= (np.abs(raw) >= st.limit * (1 - 1e-9)).any(axis=1)
             # a clipped rate or force spoils the kinematic rows around it (smoothing, integration)
-            k = 5
-            exclude[i] = np.convolve(m.astype(float), np.ones(2 * k + 1), mode="same") > 0
+            half = 5
+            exclude[i] = np.convolve(m.astype(float), np.ones(2 * half + 1), mode="same") > 0  # type: ignore[assignment]
     # -- 2. residual channels, measured and re-simulated -------------------------------------------
     t0 = time.perf_counter()
     designs = _designs(logs, cal, res.segmentations, g, exclude)
     if not designs:
         raise FitError("no log long enough to diagnose (≥ 50 IMU samples)")
-    an = analyse(designs, cal)
+    cov = coverage(designs)
+    untestable += list(cov.blocked.values())
+    an = analyse(designs, cal, only=[c.key for c in candidates(True, True) if c.effect not in cov.blocked])
     timing["analyse"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sim_logs = []
-    for d in designs:
-        src = logs[d.sid]
-        sim_logs.append(resimulate(d.s, d.clean, cal, src, rng))
+    sim_logs = [resimulate(dz.s, dz.clean, cal, logs[dz.sid], rng) for dz in designs]
     null_designs = []
-    for d, sl in zip(designs, sim_logs, strict=True):
-        s = prepare(sl, cal, d.s.rests)
-        s.restamped = d.s.restamped
-        null_designs.append(Design(s, g, d.sid))
+    for dz, sl in zip(designs, sim_logs, strict=True):
+        ss = prepare(sl, cal, dz.s.rests)
+        ss.restamped = dz.s.restamped
+        null_designs.append(Design(ss, g, dz.sid))
     null = analyse(null_designs, cal, only=[c.key for c in an.cands])
     timing["null"] = time.perf_counter() - t0
+    # -- 2c. is the baseline adequate? (invariants it does not meet are named and left out) ---------------
+    t0 = time.perf_counter()
+    if cov.rate_hz >= MIN_RATE_HZ:
+        adq = assess(an, null)
+    else:
+        adq = Adequacy({}, {}, None, ())
+        untestable.append(f"baseline adequacy: needs ≥ {MIN_RATE_HZ:g} Hz to check the model's invariants "
+                          f"against noise; this data: {cov.rate_hz:.3g} Hz, {cov.duration_s:.0f} s")
+    full_an, full_null = an, null
+    if adq.drop:
+        an, null = restrict(an, adq.drop), restrict(null, adq.drop)
+    blocked_keys: set[str] = set()
+    if adq.linear_acceleration is not None:
+        la = adq.linear_acceleration
+        blocked_keys |= set(ACCEL_KINEMATIC_EFFECTS)
+        untestable.append(
+            f"lever_arm, scale_nonlinearity (accel), time_offset (accel), axis_sign (accel): the accelerometer "
+            f"sees specific force other than gravity in motion (|a| − g RMS {la['a_norm_rms_m_s2']:.3g} m/s² "
+            f"against {la['a_norm_noise_m_s2']:.2g} from noise; {la['worst']} {la['ratio']:.0f}× its simulated "
+            f"RMS) while |a| = g holds at rest: linear acceleration (thrust, a carrying hand), not a model error")
+    timing["adequacy"] = time.perf_counter() - t0
     # -- 3. forward selection ------------------------------------------------------------------------
     n = an.problem.n
     model = ["nuisance"]
     chosen: list[str] = []
-    cond: dict[str, Any] = dict(an.first)
-    thr = {k: _threshold(_k(an, k, g_), n, null.first[k].loglik_gain) for k, g_ in an.first.items()}
+    cond: dict[str, Any] = {k: v for k, v in an.first.items() if k not in blocked_keys} if n else {}
+    thr = {k: _threshold(_k(an, k, g_), n, null.first[k].loglik_gain, null.first[k].spread) for k, g_ in cond.items()}
     while len(chosen) < MAX_EFFECTS:
         ok = [k for k in cond if k not in chosen and cond[k].loglik_gain > thr[k]]
         if not ok:
@@ -239,34 +295,41 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         for k in cond:
             if k not in chosen:
                 cond[k] = an.score(model, k)
-                thr[k] = _threshold(_k(an, k, cond[k]), n, null.first[k].loglik_gain)
+                thr[k] = _threshold(_k(an, k, cond[k]), n, null.first[k].loglik_gain, null.first[k].spread)
     # -- 4. findings ------------------------------------------------------------------------------------
     for k in chosen:
         rest_model = ["nuisance"] + [b for c in chosen if c != k for b in an.blocks[c]]
         gk = an.score(rest_model, k)
-        f = _finding(an, rest_model, k, gk, thr[k], null.first[k].loglik_gain, True)
+        f = _finding(an, rest_model, k, gk, thr[k], null.first[k].loglik_gain, True, null.first[k].spread)
         f.gain.update(_rms_physical(an, rest_model, k))
         findings.append(f)
     others = sorted((k for k in cond if k not in chosen), key=lambda k: -cond[k].loglik_gain)
     for k in others:
-        findings.append(_finding(an, model, k, cond[k], thr[k], null.first[k].loglik_gain, False))
+        findings.append(_finding(an, model, k, cond[k], thr[k], null.first[k].loglik_gain, False,
+                                 null.first[k].spread))
+    _inseparable(findings, an, designs, thr)
     for st in sats:
         findings.insert(0, _saturation_finding(st, an))
+    for grp, e in adq.inadequate.items():
+        findings.insert(0, _inadequate_finding(grp, e))
     if flip is not None:
         _flip_gain(flip, logs, g)
         findings.insert(0, flip)
     # structural findings lead: an inverted axis or a rail is undone/censored before the baseline is fitted,
     # so every other finding is conditional on them; then the linear effects by held-out gain
-    structural = ("axis_sign", "saturation")
-    findings.sort(key=lambda f: (not f.significant, f.effect not in structural, -f.score if f.significant else 0.0))
+    structural = ("baseline_inadequate", "axis_sign", "saturation")
+    # (an axis flip and a rail lead even a failed invariant: they are undone or censored before the baseline)
+    findings.sort(key=lambda f: (not f.significant, f.effect not in structural,
+                                 f.effect not in ("axis_sign", "saturation"), -f.score if f.significant else 0.0))
     # -- 5. extended calibration, statistics, simulator check -------------------------------------------
     T0 = _rest_temperature(designs)
     exts: dict[str, Any] = {}
     for f in findings:
-        if f.significant:
+        if f.significant and f.effect != "baseline_inadequate":
             exts.setdefault(f.effect, []).append(_extension(f, T0))
     exts = {k: v[0] if len(v) == 1 else v for k, v in exts.items()}
-    ext_cal = cal.replace(extensions=exts)
+    gbr = gyro_bias_rests(designs, cal, exts.get("g_sensitivity"))
+    ext_cal = _honest_gyro_sigma(cal.replace(extensions=exts), gbr)
     base_beta, _ = an.problem.fit(["nuisance"])
     r_meas = an.problem.residual(["nuisance"], base_beta)
     nb, _ = null.problem.fit(["nuisance"])
@@ -284,10 +347,13 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         "rest_measured": rest_stats(designs[0]),
         "rest_simulated": rest_stats(null_designs[0]),
         "notes": [nt for d in designs for nt in d.s.notes],
+        "adequacy": adq.to_dict(),
+        "coverage": cov.to_dict(),
+        "gyro_bias_rests": gbr,
     }
     untestable += _untestable(designs, an)
     diag = Diagnosis(baseline, findings, ext_cal, untestable, {}, timing, [d.source for d in logs])
-    diag._parts = (an, null, chosen, model)  # type: ignore[attr-defined]
+    diag._parts = (an, null, chosen, model, full_an, full_null)  # type: ignore[attr-defined]
     if check and chosen:
         t0 = time.perf_counter()
         diag.simulation_check = _simulation_check(an, chosen, r_meas, r_sim, null.problem.ch)
@@ -319,10 +385,23 @@ def _ukf_stage(diag: Diagnosis, logs: list[ImuData], cal: Calibration, exts: dic
         return (s["nis_mean"], s["outside_band"]) if s else (r["nis_mean"], r["outside_band"])
 
     for f in diag.significant:
-        if f.effect in NOT_CORRECTED:
+        if f.effect in NOT_CORRECTED or f.effect == "baseline_inadequate":
             continue
         (nb, ob), (na, oa) = pick(before, f.sensor), pick(after, f.sensor)
         f.gain.update({"ukf_nis_before": nb, "ukf_nis_after": na, "ukf_outside_before": ob, "ukf_outside_after": oa})
+    # the extensions must keep the filter consistent: where the NIS with them is worse than the baseline's
+    # (beyond the window-mean's own scatter), they are not carried into the calibration the user gets
+    nb, na = float(before["nis_mean"]), float(after["nis_mean"])
+    if np.isfinite(nb) and np.isfinite(na) and na > nb * (1.0 + NIS_TOL):
+        kept = {k: v for k, v in exts.items() if k in NOT_CORRECTED}
+        diag.calibration = diag.calibration.replace(extensions=kept)
+        diag.baseline["ukf_guard"] = (
+            f"extensions {', '.join(k for k in exts if k not in NOT_CORRECTED)} not applied: the UKF's mean NIS "
+            f"with them ({na:.3g}) exceeds the baseline's ({nb:.3g}) by more than {NIS_TOL:.0%}; the findings "
+            f"stand as diagnosis, the filter cannot carry them on this data")
+        for f in diag.significant:
+            if f.effect not in NOT_CORRECTED and f.effect != "baseline_inadequate":
+                f.parameters["applied"] = False
 
 
 def _rest_temperature(designs: list[Design]) -> float | None:
@@ -407,9 +486,118 @@ def _untestable(designs: list[Design], an: Analysis) -> list[str]:
     if not any(d.mhat is not None for d in designs):
         out.append("time_offset: no magnetometer, so only the accelerometer's lag against the gyro is measured "
                    "(a late accel and an early gyro look the same)")
-    moving = sum(int((np.linalg.norm(d.clean["w"], axis=1) > 0.5).sum() / d.s.rate) for d in designs)
-    if moving < 10:
-        out.append(f"lever_arm, scale_nonlinearity, time_offset: only {moving} s of rotation faster than 0.5 rad/s")
+    return out
+
+
+def _inadequate_finding(group: str, e: dict[str, Any]) -> Finding:
+    """The baseline does not meet an invariant: the first finding, before any effect (adequacy module)."""
+    chans = ", ".join(f"{k} {v:.1f}×" for k, v in e["channels"].items())
+    ev = (f"the paper-model baseline does not meet '{e['invariant']}' ({e['sensor']}): the measured residual's "
+          f"RMS is {e['ratio']:.1f}× that of the same session re-simulated through the fitted model ({chans}), "
+          f"even with every candidate effect fitted at once (bar {ADEQ_MAX:g}×); these rows are left out of the "
+          f"effect scoring and no effect is fitted to them.")
+    # excess log-likelihood of the failing rows against noise: ½·n·(ratio² − 1), as a scale of "how far"
+    score = 0.5 * e["rows"] * (e["ratio"] ** 2 - 1.0)
+    return Finding("baseline_inadequate", e["sensor"], None, float(score), True,
+                   {"invariant": e["invariant"], "channels": e["channels"], "rms_ratio": e["ratio"]},
+                   {"heldout_rms_before": e["ratio"], "heldout_rms_after": float("nan"),
+                    "loglik_gain": float("nan"), "bic_delta": float("nan")}, ev, ADEQ_MAX, 1.0)
+
+
+def _monotonic_temperature(designs: list[Design]) -> float:
+    """Largest |Spearman ρ| between temperature and time over the sessions with a temperature column."""
+    from scipy.stats import spearmanr
+
+    best = 0.0
+    for d in designs:
+        if not d.s.has_temp:
+            continue
+        T = d.s.temp
+        ok = np.isfinite(T)
+        if ok.sum() < 10:
+            continue
+        rho = float(spearmanr(d.s.t[ok], T[ok])[0])
+        if np.isfinite(rho):
+            best = max(best, abs(rho))
+    return best
+
+
+def _inseparable(findings: list[Finding], an: Analysis, designs: list[Design], thr: dict[str, float]) -> None:
+    """temperature_bias and bias_drift of one sensor cannot be told apart where the temperature rises (or
+    falls) steadily with time: both clear their bar on their own, and the temperature is a monotonic function
+    of time (|Spearman ρ| ≥ INSEPARABLE_RHO). The significant one is kept but marked, and the other named."""
+    rho = _monotonic_temperature(designs)
+    if rho < INSEPARABLE_RHO:
+        return
+    for f in findings:
+        if not f.significant or f.effect not in ("temperature_bias", "bias_drift"):
+            continue
+        other = "bias_drift" if f.effect == "temperature_bias" else "temperature_bias"
+        ok = f"{other}:{f.sensor}"
+        g0 = an.first.get(ok)
+        if g0 is None or g0.loglik_gain <= thr.get(ok, np.inf):
+            continue
+        f.parameters["inseparable_from"] = other
+        f.evidence = (f"cannot be told apart from {other} on this data: the temperature rises with time "
+                      f"(|Spearman ρ| = {rho:.3f}) and {other} alone also clears its bar "
+                      f"({g0.loglik_gain:.1f} nats); read as '{f.effect} or {other}'. " + f.evidence)
+
+
+def _honest_gyro_sigma(cal: Calibration, gbr: dict[str, Any]) -> Calibration:
+    """The gyro bias σ widened to cover the rest-to-rest spread (after the g_sensitivity extension where one
+    was found): until an extension explains the spread, the bias is known no better than it."""
+    if not gbr or cal.gyro is None:
+        return cal
+    key = "spread_after_extension" if "spread_after_extension" in gbr else "spread"
+    spread, noise = np.asarray(gbr[key]), np.asarray(gbr["noise"])
+    sig = np.asarray(gbr["batch_sigma_bias"], float)
+    k = int(gbr["rests"])
+    # rests that agree within noise: the bias is their mean, known to spread/√k; rests that disagree beyond
+    # twice the noise (nothing explains it): the bias at an arbitrary moment is known only to the spread itself
+    new = np.where(spread > 2.0 * noise, np.maximum(sig, spread), np.maximum(sig, spread / np.sqrt(k)))
+    gbr["sigma_bias_reported"] = new.tolist()
+    if np.array_equal(new, sig):
+        return cal
+    return cal.replace(gyro=cal.gyro.with_sigma({**cal.gyro.sigma, "bias": new}))
+
+
+def gyro_bias_rests(designs: list[Design], cal: Calibration, gsens: Any = None) -> dict[str, Any]:
+    """Rest-to-rest spread of the calibrated gyro's rest means against what noise allows, and the gyro bias
+    σ that covers it (issue: a batch σ of 3e-5 rad/s beside a rest-to-rest spread ten times larger).
+
+    Per rest of ≥ 1 s: the mean calibrated rate (rad/s) and its noise σ (within-rest sd/√n). ``spread`` is the
+    sd of the rest means per axis; ``noise`` the RMS of their noise σ; while the spread exceeds noise the bias
+    is not one constant, and ``sigma_bias`` = max(batch σ, spread) is the honest 1σ of the bias at an
+    arbitrary moment. With a g_sensitivity extension (``gsens``, the calibration JSON entry) the rest means
+    are corrected by it first (``spread_after_extension``, ``sigma_bias_after_extension``)."""
+    means, accs, noise = [], [], []
+    for d in designs:
+        for iv in d.s.rests:
+            if iv.n < max(5, d.s.rate):
+                continue
+            w = d.s.w[iv.i0:iv.i1]
+            means.append(w.mean(axis=0))
+            accs.append(d.s.a[iv.i0:iv.i1].mean(axis=0))
+            noise.append(w.std(axis=0, ddof=1) / np.sqrt(w.shape[0]))
+    if len(means) < 3 or cal.gyro is None:
+        return {}
+    W, A, E = np.array(means), np.array(accs), np.array(noise)
+    batch = np.asarray(cal.gyro.sigma.get("bias", np.zeros(3)), float).reshape(-1)[:3]
+    if batch.size < 3:
+        batch = np.zeros(3)
+    spread = W.std(axis=0, ddof=1)
+    nz = np.sqrt(np.mean(E**2, axis=0))
+    out: dict[str, Any] = {"rests": len(means), "spread": spread.tolist(), "noise": nz.tolist(),
+                           "spread_over_noise": (spread / np.maximum(nz, 1e-300)).tolist(),
+                           "batch_sigma_bias": batch.tolist(), "sigma_bias": np.maximum(batch, spread).tolist()}
+    if gsens is not None:
+        from ..extensions import gsens_matrix
+
+        G = sum((gsens_matrix(e) for e in (gsens if isinstance(gsens, list) else [gsens])), np.zeros((3, 3)))
+        Wc = W - A @ (cal.gyro.matrix @ G).T  # δω_cal = M·G·f: the extension's share of each rest mean
+        sp2 = Wc.std(axis=0, ddof=1)
+        out["spread_after_extension"] = sp2.tolist()
+        out["sigma_bias_after_extension"] = np.maximum(batch, sp2).tolist()
     return out
 
 

@@ -102,7 +102,32 @@ def drift_cols(sensor: str) -> Callable[[Design, Calibration], Array]:
 
 
 def gsens_cols(d: Design, cal: Calibration) -> Array:
-    return _raw_cols(d, cal, "gyro", d.clean["a"])
+    """The full 3×3 g-sensitivity (raw gyro ← G·f, f the body specific force): for each force component j a
+    raw change f_j on every gyro axis i, i.e. the column of G[i, j] at 3·j + i."""
+    f = d.clean["a"]
+    return np.concatenate([_raw_cols(d, cal, "gyro", np.repeat(f[:, j : j + 1], 3, axis=1)) for j in range(3)],
+                          axis=1)
+
+
+def gsens_params(beta: Array, cov: Array, ds: list[Design], cal: Calibration) -> dict[str, Any]:
+    """G (3×3, rad/s per m/s²) from the 9 coefficients (order 3·j + i); a cross-axis term counts when it is
+    ≥ 5 σ and ≥ 30 % of the largest element: then the finding is the full matrix (axis all, ``matrix``), else
+    the same-axis terms alone as before (``coeff`` on one axis or per axis)."""
+    G = beta.reshape(3, 3).T
+    sd = np.sqrt(np.maximum(np.diag(cov), 0)).reshape(3, 3).T
+    off = ~np.eye(3, dtype=bool)
+    z = np.abs(G) / np.maximum(sd, 1e-300)
+    big = (z >= 5.0) & (np.abs(G) >= 0.3 * np.abs(G).max())
+    out: dict[str, Any] = {"matrix": G.tolist(), "matrix_sigma": sd.tolist(),
+                           "matrix_mrad_s_per_g": (G * 9.80665e3).tolist()}
+    if (big & off).any():
+        out.update({"axis": None, "coeff": np.diag(G).tolist(), "per_axis": np.diag(G).tolist(),
+                    "per_axis_sigma": np.diag(sd).tolist(), "full": True})
+        return out
+    axis, c = _axis_choice(np.diag(G), np.diag(sd))
+    out.update({"axis": axis, "coeff": c, "per_axis": np.diag(G).tolist(), "per_axis_sigma": np.diag(sd).tolist(),
+                "full": False})
+    return out
 
 
 def nonlin_cols(sensor: str) -> Callable[[Design, Calibration], Array]:
@@ -206,7 +231,7 @@ def candidates(has_mag: bool, has_temp: bool) -> list[Candidate]:
     out = [
         Candidate("bias_drift", "gyro", True, drift_cols("gyro"), drift_params),
         Candidate("bias_drift", "accel", True, drift_cols("accel"), drift_params),
-        Candidate("g_sensitivity", "gyro", False, gsens_cols, per_axis_params("coeff")),
+        Candidate("g_sensitivity", "gyro", False, gsens_cols, gsens_params),
         Candidate("scale_nonlinearity", "gyro", False, nonlin_cols("gyro"), per_axis_params("coeff")),
         Candidate("scale_nonlinearity", "accel", False, nonlin_cols("accel"), per_axis_params("coeff")),
         Candidate("lever_arm", "accel", False, lever_cols, lever_params),
@@ -289,7 +314,7 @@ def _rate_map(v: Array, t: Array, w_raw: Array, rate: float) -> Array | None:
     return g.reshape(3, 3)
 
 
-def find_axis_sign(t: Array, raw_g: Array, gyro_bias: Array, a: Array, m: Array | None,
+def find_axis_sign(t: Array, raw_g: Array, gyro_bias: Array, a: Array | None, m: Array | None,
                    rate: float) -> Handedness | None:
     """Handedness of each sensor against the others (Poisson's equation v̇ = v × ω holds in right-handed
     frames only; Q(a×b) = det Q · (Qa × Qb) for orthogonal Q).
@@ -297,10 +322,11 @@ def find_axis_sign(t: Array, raw_g: Array, gyro_bias: Array, a: Array, m: Array 
     For a vector sensor v and the gyro, fit G with v̇ = v × (G ω_raw). A gyro with an inverted axis gives
     det G < 0 against every vector sensor; a vector sensor with an inverted axis j gives G = −F_j·(…), a
     proper rotation by 180° about j — sensors of one board are nominally aligned, so a 180° rate map names
-    the inverted vector sensor and its axis. ``a``, ``m``: bias-removed vectors in their own raw frames.
+    the inverted vector sensor and its axis. ``a``, ``m``: bias-removed vectors in their own raw frames (None:
+    not usable — an accelerometer that sees linear acceleration is no world-fixed vector).
     """
     w = raw_g - gyro_bias
-    maps = {"accel": _rate_map(a, t, w, rate)}
+    maps = {"accel": _rate_map(a, t, w, rate)} if a is not None else {}
     if m is not None:
         maps["mag"] = _rate_map(m, t, w, rate)
     maps = {k: v for k, v in maps.items() if v is not None}

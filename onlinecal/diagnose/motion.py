@@ -89,12 +89,16 @@ def prepare(data: ImuData, cal: Calibration, rests: list[Interval]) -> Session:
     w = apply_cal(cal.gyro, data.gyro)
     a = apply_cal(cal.accel, data.acc)
     raw_m = m = None
-    if data.has_mag and data.n_mag >= 10:
+    if data.has_mag and data.n_mag >= 10 and cal.mag is None:
+        # an uncalibrated field has no norm or dip to check: the mag's invariants are left out
+        notes.append(f"{data.source}: the baseline has no magnetometer calibration; the magnetometer's "
+                     "invariants (|m| = 1, dip, m against gyro) are not checked")
+    if data.has_mag and data.n_mag >= 10 and cal.mag is not None:
         tm = np.asarray(data.t_mag, float)
         if restamped:
             # the same even re-stamping, mapped by position in the log's original time span
             tm = np.interp(tm, data.t_imu, t)
-        mm = cal.mag.apply(data.mag) if cal.mag is not None else np.asarray(data.mag, float)
+        mm = cal.mag.apply(data.mag)
         m = np.column_stack([np.interp(t, tm, mm[:, k]) for k in range(3)])
         raw_m = np.column_stack([np.interp(t, tm, data.mag[:, k]) for k in range(3)])
         j = np.searchsorted(tm, t)

@@ -15,13 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from ..effect_registry import UKF_STATE
 from ..io.base import ImuData
 from ..model import Calibration
 
 # extension (effect, sensor) → the UKF's extra state estimating it (onlinecal.ukf.filter.EXTENSIONS)
-STATE_OF = {("temperature_bias", "gyro"): "temperature_bias:gyro",
-            ("temperature_bias", "accel"): "temperature_bias:accel",
-            ("g_sensitivity", "gyro"): "g_sensitivity"}
+STATE_OF = UKF_STATE
 # not corrected in the data: axis_sign is already undone before the baseline is fitted; bias_drift and
 # saturation have no pointwise inverse (the filter's bias random walk and rail detector cover them)
 NOT_CORRECTED = ("axis_sign", "bias_drift", "saturation")
@@ -77,6 +76,8 @@ def run_ukf(logs: list[ImuData], cal: Calibration, extensions: dict[str, Any] | 
         kept = []
         for e, raw in zip(entries, _raw_entries(extensions, name), strict=True):
             st = STATE_OF.get((name, e["sensor"]))
+            if name == "g_sensitivity" and raw.get("matrix") is not None:
+                st = None  # the filter's g_sensitivity state is diagonal: a full matrix is applied to the data
             if st in avail:
                 states.append(st)
             elif name not in NOT_CORRECTED:

@@ -14,6 +14,7 @@ from ..model import Calibration
 SCHEMA = "onlinecal.diagnosis/1"
 GAIN_KEYS = ("heldout_rms_before", "heldout_rms_after", "loglik_gain", "bic_delta")
 # the UKF stage's figures (window-mean NIS per update, expected 3; share of windows outside the band), where run
+OPT_GAIN_KEYS = ("gain_spread",)
 UKF_GAIN_KEYS = ("ukf_nis_before", "ukf_nis_after", "ukf_outside_before", "ukf_outside_after")
 
 
@@ -55,7 +56,7 @@ class Finding:
         return _plain({"effect": self.effect, "sensor": self.sensor, "axis": self.axis, "score": self.score,
                        "significant": self.significant, "parameters": self.parameters,
                        "gain": {**{k: self.gain.get(k, float("nan")) for k in GAIN_KEYS},
-                                **{k: self.gain[k] for k in UKF_GAIN_KEYS if k in self.gain}},
+                                **{k: self.gain[k] for k in OPT_GAIN_KEYS + UKF_GAIN_KEYS if k in self.gain}},
                        "evidence": self.evidence, "threshold": self.threshold, "null_score": self.null_score})
 
 

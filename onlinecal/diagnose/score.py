@@ -9,6 +9,12 @@ beside it is −2·gain + Δk·ln n (Schwarz 1978), with Δk the effective numbe
 
 Everything runs on the Gram matrices of the whitened columns per fold, so comparing dozens of models costs
 small p×p solves instead of passes over the rows.
+
+The gain's own spread: the held-out gain is a sum over the 10-s time blocks of their contributions
+d_b = ½ Σ_{rows in b} (r₀² − r₁²); across blocks these are close to independent, so the gain's standard
+deviation is estimated as √B·sd(d_b) (the paired, block-wise form of Vuong's 1989 test of non-nested
+models). A candidate that only fits the session's particular noise (a clean seed) earns a gain of the
+order of this spread with either sign; ``Gain.spread`` carries it so that the significance bar covers it.
 """
 
 from __future__ import annotations
@@ -74,10 +80,11 @@ class Gain:
     rms_after: float
     k: float
     n: int
+    spread: float = 0.0  # standard deviation of loglik_gain over the session's time blocks (nats, see module doc)
 
     def to_dict(self) -> dict[str, float]:
         return {"heldout_rms_before": self.rms_before, "heldout_rms_after": self.rms_after,
-                "loglik_gain": self.loglik_gain, "bic_delta": self.bic_delta}
+                "loglik_gain": self.loglik_gain, "bic_delta": self.bic_delta, "gain_spread": self.spread}
 
 
 @dataclass
@@ -95,10 +102,13 @@ class Problem:
     blocks: dict[str, slice] = field(default_factory=dict)
     Z: Array = field(default_factory=lambda: np.zeros((0, 0)))
     G: list[Array] = field(default_factory=list)
+    blk: Array = field(default_factory=lambda: np.zeros(0, int))  # (n,) time-block index of each row (0..B−1)
     _dof: dict[tuple, float] = field(default_factory=dict)
+    _r2: dict[tuple, Array] = field(default_factory=dict)
 
     @classmethod
-    def build(cls, y: Array, ch: Array, t: Array, fold: Array, sigma: Array, cols: dict[str, Array]) -> Problem:
+    def build(cls, y: Array, ch: Array, t: Array, fold: Array, sigma: Array, cols: dict[str, Array],
+              blk: Array | None = None) -> Problem:
         w = 1.0 / sigma[ch]
         names = list(cols)
         sl: dict[str, slice] = {}
@@ -108,7 +118,10 @@ class Problem:
             i += cols[n].shape[1]
         Z = np.concatenate([cols[n] for n in names] + [y[:, None]], axis=1) * w[:, None]
         G = [Z[fold == f].T @ Z[fold == f] for f in (0, 1)]
-        return cls(y, ch, t, fold, sigma, sl, Z, G)
+        if blk is None:
+            blk = np.floor(t / FOLD_S).astype(int)
+        blk = np.unique(blk, return_inverse=True)[1].astype(int)
+        return cls(y, ch, t, fold, sigma, sl, Z, G, blk)
 
     @property
     def n(self) -> int:
@@ -180,9 +193,41 @@ class Problem:
         ix = self.idx(model)
         return self.Z[:, -1] - self.Z[:, ix] @ beta
 
+    def heldout_r2(self, model: list[str], priors: dict[str, Array] | None = None) -> Array:
+        """(n,) squared held-out residual of every row (each fold predicted by the fit on the other)."""
+        key = tuple(model) + tuple(b for b in model if priors and b in priors)
+        if key in self._r2:
+            return self._r2[key]
+        ix = self.idx(model)
+        P = self.prior_matrix(model, priors or {})
+        r2 = np.empty(self.n)
+        for f in (0, 1):
+            beta, _ = self._fit(self.G[1 - f], ix, P)
+            te = self.fold == f
+            Zt = self.Z[te]
+            r2[te] = (Zt[:, -1] - Zt[:, ix] @ beta) ** 2
+        if len(self._r2) > 64:  # forward selection revisits a few base models; keep the memory bounded
+            self._r2.clear()
+        self._r2[key] = r2
+        return r2
+
+    def spread(self, base: list[str], ext: list[str], priors: dict[str, Array] | None = None) -> float:
+        """Standard deviation of the held-out gain of base + ext over base: √B·sd of the per-block gains
+        (module doc). 0 with fewer than 4 blocks holding rows."""
+        d = 0.5 * (self.heldout_r2(base, priors) - self.heldout_r2(base + ext, priors))
+        db = np.bincount(self.blk, weights=d)
+        db = db[np.bincount(self.blk) > 0]
+        B = db.size
+        if B < 4:
+            return 0.0
+        return float(np.sqrt(B) * np.std(db, ddof=1))
+
     def gain(self, base: list[str], ext: list[str], priors: dict[str, Array] | None = None) -> Gain:
+        if self.n == 0:  # every row left out (no invariant the baseline meets): nothing to score
+            return Gain(0.0, 0.0, float("nan"), float("nan"), 0.0, 0, 0.0)
         ll0, rss0, n = self.heldout(base, priors)
         ll1, rss1, _ = self.heldout(base + ext, priors)
         k = self.dof(base + ext, priors) - self.dof(base, priors)
         g = ll1 - ll0
-        return Gain(g, -2 * g + k * np.log(max(n, 2)), float(np.sqrt(rss0 / n)), float(np.sqrt(rss1 / n)), k, n)
+        return Gain(g, -2 * g + k * np.log(max(n, 2)), float(np.sqrt(rss0 / n)), float(np.sqrt(rss1 / n)), k, n,
+                    self.spread(base, ext, priors))

@@ -80,4 +80,26 @@ def rest_stats(d: Design) -> dict[str, Any]:
         if m.any():
             bands[f"{lo:g}-{hi:g} Hz"] = np.sqrt(P[m].mean(axis=0)).tolist()
     return {"rest_s": float(iv.n / s.rate), "allan_tau_s": taus.tolist(), "allan_dev": devs.tolist(),
-            "psd_sqrt_band": bands}
+            "psd_sqrt_band": bands, "datasheet": allan_datasheet(taus, devs)}
+
+
+def allan_datasheet(taus: Array, devs: Array) -> dict[str, Any]:
+    """Allan deviation read in a datasheet's units (IEEE Std 952 Annex C), per axis:
+
+    * angle random walk N (°/√h): σ(τ) on the −½ slope read at τ = 1 s, N = σ(1 s)·√(1 s) (interpolated in
+      log–log, or extrapolated from the shortest τ along the −½ slope), × 180/π × 60;
+    * bias instability B (°/h): the minimum of σ(τ) over the τ measured divided by 0.664 (the flicker floor's
+      factor), × 180/π × 3600 — a lower bound on it when the curve is still falling at the longest τ
+      (``bias_instability_is_bound``).
+    """
+    if taus.size < 2:
+        return {}
+    lt, ld = np.log(taus), np.log(np.maximum(devs, 1e-300))
+    at1 = np.array([np.interp(0.0, lt, ld[:, k]) if lt[0] <= 0.0 <= lt[-1] else ld[0, k] + 0.5 * lt[0]
+                    for k in range(devs.shape[1])])
+    arw = np.exp(at1) * np.degrees(1.0) * 60.0
+    i_min = np.argmin(devs, axis=0)
+    bi = devs.min(axis=0) / 0.664 * np.degrees(1.0) * 3600.0
+    return {"angle_random_walk_deg_sqrt_h": arw.tolist(), "bias_instability_deg_h": bi.tolist(),
+            "bias_instability_tau_s": taus[i_min].tolist(),
+            "bias_instability_is_bound": (i_min == taus.size - 1).tolist()}

@@ -38,13 +38,13 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
+from ..effect_registry import EFFECTS, REGISTRY  # the one vocabulary (names, sensors, inverse, UKF state)
+
 if TYPE_CHECKING:  # runtime import would be circular (sensors imports this module)
     from .sensors import SimContext
 
 Array = NDArray[np.float64]
 
-EFFECTS = ("temperature_bias", "bias_drift", "g_sensitivity", "time_offset", "saturation",
-           "scale_nonlinearity", "lever_arm", "axis_sign")
 AXES = ("x", "y", "z")
 UNIT = {"gyro": "rad/s", "accel": "m/s^2", "mag": "mag unit"}
 
@@ -101,6 +101,10 @@ class Effect:
         kv = []
         for f in fields(self):  # type: ignore[arg-type]
             k, v = f.name, getattr(self, f.name)
+            if k == "matrix":  # 9 numbers row by row, ';'-separated (',' separates the keys)
+                if v is not None:
+                    kv.append("matrix=" + ";".join(repr(float(x)) for r in v for x in r))
+                continue
             kv.append(f"{k}={'all' if v is None else v!r}".replace("'", ""))
         return f"{self.name}:{','.join(kv)}"
 
@@ -192,13 +196,17 @@ class BiasDrift(Effect):
 
 @dataclass(frozen=True)
 class GSensitivity(Effect):
-    """Gyro output responding to specific force: ``raw_gyro_i += coeff·f_i``.
+    """Gyro output responding to specific force: ``raw_gyro += G·f`` with
+    ``G = diag(coeff on the selected axes) + matrix``.
 
     ``f`` is the true specific force (m/s²) in the body frame B at the gyro's sample instants (the
-    centre of rotation, not the accelerometer's lever-arm position); it is added to the gyro's raw
-    value of the same axis index (a diagonal g-sensitivity). Units: coeff rad/s per m/s². Real parts
-    (orders of magnitude): consumer MEMS gyros ~0.1 dps/g ≈ 1.8e-4 rad/s per m/s², older parts up to
-    ~0.3 dps/g, tactical-grade MEMS < 0.01 dps/g.
+    centre of rotation, not the accelerometer's lever-arm position). ``coeff`` is the same-axis
+    (diagonal) term; ``matrix`` (3×3, row = gyro axis, column = force axis; None = zeros) adds the full
+    g-sensitivity matrix as Kalibr's and OpenVINS's IMU models carry it (T_g / "g-sensitivity"), whose
+    cross-axis terms dominate on some parts (the imu_tk Xsens session: gyro y ← acc x −2.65 mrad/s per g).
+    Units: rad/s per m/s². Real parts (orders of magnitude): consumer MEMS gyros ~0.1 dps/g ≈ 1.8e-4 rad/s
+    per m/s², older parts up to ~0.3 dps/g, tactical-grade MEMS < 0.01 dps/g. On the command line the
+    matrix is 9 numbers row by row separated by ``;`` (``g_sensitivity:coeff=0,matrix=0;-2.7e-4;...``).
     """
 
     name: ClassVar[str] = "g_sensitivity"
@@ -206,15 +214,40 @@ class GSensitivity(Effect):
     sensor: str = "gyro"
     axis: str | None = None
     coeff: float = 1e-4
+    matrix: tuple[tuple[float, ...], ...] | None = None
 
     def __post_init__(self) -> None:
         _check_sensor(self.name, self.sensor, ("gyro",))
         _check_axis(self.name, self.axis)
         _check_num(self.name, "coeff", self.coeff, -0.1, 0.1)
+        if self.matrix is not None:
+            m = np.asarray(self.matrix, dtype=float) if _is_numeric_matrix(self.matrix) else None
+            if m is None or m.shape != (3, 3) or not np.all(np.isfinite(m)) or np.abs(m).max() > 0.1:
+                raise EffectError(f"{self.name}: matrix must be 3×3 finite numbers within ±0.1 (got {self.matrix!r})")
+            object.__setattr__(self, "matrix", tuple(tuple(float(v) for v in row) for row in m))
+
+    def G(self) -> Array:
+        """The full g-sensitivity matrix (3, 3), rad/s per m/s²."""
+        G = np.zeros((3, 3))
+        for i in _axes(self.axis):
+            G[i, i] = self.coeff
+        if self.matrix is not None:
+            G = G + np.asarray(self.matrix, float)
+        return G
+
+    def params(self) -> dict[str, Any]:
+        return {"coeff": self.coeff, "matrix": None if self.matrix is None else [list(r) for r in self.matrix]}
 
     def apply(self, ctx: SimContext) -> None:
-        ax = _axes(self.axis)
-        ctx.gyro[:, ax] += self.coeff * ctx.motion["gyro"].f[:, ax]
+        ctx.gyro += ctx.motion["gyro"].f @ self.G().T
+
+
+def _is_numeric_matrix(m: Any) -> bool:
+    try:
+        a = np.asarray(m, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return a.ndim == 2
 
 
 @dataclass(frozen=True)
@@ -400,6 +433,7 @@ EFFECT_CLASSES: dict[str, type[Effect]] = {
                         LeverArm, AxisSign)
 }
 assert tuple(EFFECT_CLASSES) == EFFECTS
+assert all(REGISTRY[n].forward == c.__name__ for n, c in EFFECT_CLASSES.items())
 
 # Keys of each effect and their defaults (None: depends on the sensor, see DEFAULT_LIMIT; axis None = all).
 EFFECT_KEYS: dict[str, dict[str, Any]] = {
@@ -410,6 +444,14 @@ _STR_KEYS = ("sensor", "axis")
 
 
 def _value(name: str, key: str, text: str) -> Any:
+    if key == "matrix":
+        try:
+            v9 = [float(x) for x in text.split(";")]
+        except ValueError:
+            raise EffectError(f"{name}: matrix must be 9 numbers separated by ';' (got {text!r})") from None
+        if len(v9) != 9:
+            raise EffectError(f"{name}: matrix must be 9 numbers separated by ';' (got {len(v9)})")
+        return tuple(tuple(v9[3 * i : 3 * i + 3]) for i in range(3))
     if key == "axis":
         return None if text == "all" else text
     if key == "sensor":
@@ -438,6 +480,8 @@ def make_effect(name: str, **params: Any) -> Effect:
             raise EffectError(f"{name}: {k} must be a string (got {v!r})")
         if k not in _STR_KEYS and isinstance(v, int) and not isinstance(v, bool):
             params[k] = float(v)
+        if k == "matrix" and isinstance(v, list):
+            params[k] = tuple(tuple(r) if isinstance(r, list) else r for r in v)
     return EFFECT_CLASSES[name](**params)
 
 
@@ -552,6 +596,8 @@ def random_effect(name: str, rng: np.random.Generator, session: Any = None) -> E
         return make_effect(name, sensor="gyro", axis=axis(), density=float(rng.uniform(5e-5, 3e-4)))
     if name == "g_sensitivity":
         return make_effect(name, axis=axis(), coeff=sign() * float(rng.uniform(5e-5, 5e-4)))
+    if name == "g_sensitivity_matrix":
+        return random_gsens_matrix(rng)
     if name == "time_offset":
         return make_effect(name, sensor=str(rng.choice(["gyro", "accel", "mag"])),
                            seconds=sign() * float(rng.uniform(0.01, 0.08)))
@@ -569,3 +615,12 @@ def random_effect(name: str, rng: np.random.Generator, session: Any = None) -> E
         return make_effect(name, sensor=str(rng.choice(["gyro", "accel", "mag"])),
                            axis=str(rng.choice(["x", "y", "z"])))
     raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+
+
+def random_gsens_matrix(rng: np.random.Generator) -> GSensitivity:
+    """A full 3×3 g-sensitivity as the imu_tk Xsens part shows it: cross-axis terms of 1–3 mrad/s per g
+    (1.0e-4…3.1e-4 rad/s per m/s², random signs), same-axis terms under 0.2 mrad/s per g."""
+    g = 9.80665
+    M = rng.uniform(1e-3, 3e-3, (3, 3)) / g * rng.choice([-1.0, 1.0], (3, 3))
+    M[np.diag_indices(3)] = rng.uniform(-2e-4, 2e-4, 3) / g
+    return GSensitivity(coeff=0.0, matrix=tuple(tuple(float(v) for v in r) for r in M))

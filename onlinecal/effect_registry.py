@@ -1,0 +1,65 @@
+"""The effect vocabulary in one place: what each effect of the contract is, which sensors it may act on, how
+the simulator makes it, how an extension undoes it, which UKF state carries it and whether a live run can
+apply it block by block.
+
+The simulator (:mod:`onlinecal.sim.effects`), the extensions (:mod:`onlinecal.extensions`), live/replay
+(:mod:`onlinecal.apply_ext`) and ``diagnose`` read this table instead of keeping their own lists. It imports
+nothing from the package, so every layer (production and simulator) may import it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class EffectInfo:
+    """One effect of the vocabulary.
+
+    ``sensors``: the sensors it may act on (first = default); ``required``: extension keys that must be given
+    (a missing coefficient must not silently become the simulator's default); ``forward``: the simulator's
+    class (in :mod:`onlinecal.sim.effects`); ``inverse``: how :func:`onlinecal.extensions.correct` undoes it
+    ("pointwise", "resample", "none" — not removable from the data); ``ukf_state``: the UKF extension state
+    that can estimate it instead (``sensor`` → state name), if any; ``live``: a live run can apply it block by
+    block; ``diagnosed``: ``diagnose`` has a candidate for it.
+    """
+
+    name: str
+    sensors: tuple[str, ...]
+    required: tuple[str, ...]
+    forward: str
+    inverse: str
+    ukf_state: tuple[tuple[str, str], ...] = ()
+    live: bool = False
+    diagnosed: bool = True
+    meaning: str = ""
+
+
+REGISTRY: dict[str, EffectInfo] = {e.name: e for e in (
+    EffectInfo("temperature_bias", ("gyro", "accel"), ("coeff",), "TemperatureBias", "pointwise",
+               (("gyro", "temperature_bias:gyro"), ("accel", "temperature_bias:accel")), live=True,
+               meaning="a bias that moves with the sensor's temperature"),
+    EffectInfo("bias_drift", ("gyro", "accel"), ("density",), "BiasDrift", "none",
+               meaning="a bias that wanders with time (random walk / instability)"),
+    EffectInfo("g_sensitivity", ("gyro",), ("coeff",), "GSensitivity", "pointwise",
+               (("gyro", "g_sensitivity"),), live=True,
+               meaning="gyro output that responds to specific force (full 3×3 with the matrix key)"),
+    EffectInfo("time_offset", ("mag", "gyro", "accel"), ("sensor", "seconds"), "TimeOffset", "resample",
+               meaning="one sensor's samples stamped late or early against another's"),
+    EffectInfo("saturation", ("gyro", "accel"), ("sensor", "limit"), "Saturation", "none",
+               meaning="readings clipped at a range limit"),
+    EffectInfo("scale_nonlinearity", ("gyro", "accel"), ("coeff",), "ScaleNonlinearity", "pointwise", live=True,
+               meaning="a scale factor that changes with the magnitude of the input"),
+    EffectInfo("lever_arm", ("accel",), ("x", "y", "z"), "LeverArm", "pointwise", live=True,
+               meaning="accelerometer away from the centre of rotation (centripetal and tangential terms)"),
+    EffectInfo("axis_sign", ("gyro", "accel", "mag"), ("sensor", "axis"), "AxisSign", "pointwise", live=True,
+               meaning="an axis whose sign is inverted against the other sensors (mounting or driver error)"),
+)}
+
+EFFECTS: tuple[str, ...] = tuple(REGISTRY)
+SENSORS_OF: dict[str, tuple[str, ...]] = {n: e.sensors for n, e in REGISTRY.items()}
+REQUIRED: dict[str, tuple[str, ...]] = {n: e.required for n, e in REGISTRY.items()}
+# (effect, sensor) → the UKF extension state that estimates it
+UKF_STATE: dict[tuple[str, str], str] = {(n, s): st for n, e in REGISTRY.items() for s, st in e.ukf_state}
+LIVE_POINTWISE: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.live)
+NOT_REMOVABLE: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.inverse == "none")

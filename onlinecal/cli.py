@@ -886,6 +886,7 @@ def _quiet_libraries() -> None:
 
     warnings.showwarning = _one_line_warning
     warnings.simplefilter("default")
+    warnings.simplefilter("ignore", ResourceWarning)  # an unclosed file at exit is ours to fix, not the user's to read
     logging.getLogger("matplotlib").setLevel(logging.ERROR)
     for s in (sys.stdout, sys.stderr):  # a unicode file name or σ under LANG=C: never a UnicodeEncodeError
         try:

@@ -12,6 +12,7 @@ from .attitude_init import MagCollector
 from .blocks import HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer
 from .config import UKFConfig
 from .health import NisMonitor, finite_or_none, none_to_inf
+from .magstart import MagStart
 from .rest import RestAccumulator
 from .vehicle import MotionCoverage, VehicleDetector
 
@@ -31,10 +32,10 @@ def get_state(f: Any) -> dict[str, Any]:
         "rate": f._rate, "L": f._L,
         **f._buf.to_dict(),
         "t_last": f._t_last, "w_last": f._w_last.tolist(), "att_ok": f._att_ok,
-        "yaw_free": f._yaw_free,
-        "align_yaw_next": f._align_yaw_next,
-        "mag_enabled": f.mag_enabled, "dip_known": f.dip_known, "mag_buf": f._mag_buf.buf.tolist(),
-        "mag_buf_next": finite_or_none(f._mag_buf.next_t), "mag_fit_next": finite_or_none(f._mag_fit_next),
+        "yaw_free": f._mag.yaw_free,
+        "align_yaw_next": f._mag.align_next,
+        "mag_enabled": f._mag.enabled, "dip_known": f._mag.dip_known, "mag_buf": f._mag.buf.buf.tolist(),
+        "mag_buf_next": finite_or_none(f._mag.buf.next_t), "mag_fit_next": finite_or_none(f._mag.fit_next),
         "next_trace": finite_or_none(f._next_trace), "n_imu": f._n_imu, "n_blocks": f._n_blocks,
         "nis": f._nis.stats, "events": f._log.events, "n_events": f._log.total, "trace": list(f._trace),
         "rest_count": rd.count,
@@ -71,12 +72,9 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
     f._t_last = d["t_last"]
     f._w_last = np.asarray(d["w_last"], float)
     f._att_ok = bool(d["att_ok"])
-    f._yaw_free = bool(d["yaw_free"])
-    f._align_yaw_next = bool(d["align_yaw_next"])
-    f.mag_enabled = bool(d["mag_enabled"])
-    f.dip_known = bool(d["dip_known"])
-    f._mag_buf = MagCollector(np.asarray(d["mag_buf"], float).reshape(-1, 3), none_to_inf(d["mag_buf_next"]))
-    f._mag_fit_next = none_to_inf(d["mag_fit_next"])
+    f._mag = MagStart(bool(d["mag_enabled"]), bool(d["dip_known"]),
+                      MagCollector(np.asarray(d["mag_buf"], float).reshape(-1, 3), none_to_inf(d["mag_buf_next"])),
+                      none_to_inf(d["mag_fit_next"]), bool(d["align_yaw_next"]), bool(d["yaw_free"]))
     f._next_trace = none_to_inf(d["next_trace"])
     f._n_imu, f._n_blocks = int(d["n_imu"]), int(d["n_blocks"])
     f._nis = NisMonitor(c.nis_window, c.nis_band_p, c.divergence_factor, c.divergence_windows)

@@ -117,7 +117,8 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     mavutil = mavutil_v2()
     mavlink = mavutil.mavlink
     rows = raw_imu_rows(data)
-    order, stats = fault_schedule(rows.shape[0], drop, reorder, duplicate, np.random.default_rng(seed))
+    order, faults = fault_schedule(rows.shape[0], drop, reorder, duplicate, np.random.default_rng(seed))
+    stats: dict[str, Any] = dict(faults)
     table: dict[str, float] = {} if params is None else params
     stats.update(sent=0, samples=int(rows.shape[0]), commands=0, interval_us=None, peer=True, param_sets=0,
                  params=table)

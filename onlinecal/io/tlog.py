@@ -135,6 +135,7 @@ class TlogReader:
                                f"not a MAVLink telemetry log?")
             shown = ", ".join(kinds[:8]) + (", ..." if len(kinds) > 8 else "")
             raise LogError(self.path, f"no IMU messages ({', '.join(IMU_MESSAGES)}) in the log; it holds {shown}")
+        assert chosen is not None  # seen is not empty, and the first IMU message chose a source
         self._flush(st, filt, asm)
         self.source = seen[chosen]
         others = [d for k, d in seen.items() if k != chosen]

@@ -661,6 +661,7 @@ class OnlineCalibrator:
 
     @classmethod
     def from_state(cls, d: dict[str, Any]) -> OnlineCalibrator:
+        checkpoint.check_schema(d)
         obj = cls(None, UKFConfig.from_dict(d["config"]))
         obj.set_state(d)
         return obj

@@ -33,16 +33,15 @@ from scipy.stats import chi2
 from ..io.base import ImuData
 from ..model import SENSORS, Calibration
 from . import checkpoint
-from .attitude_init import dip_of, initial_attitude, set_yaw_variance
+from .attitude_init import attitude_start, fold_attitude
 from .attitude_init import ellipsoid_gn as ellipsoid_gn  # re-exported (older imports)
 from .blocks import Blocks, HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer, block_stats, cut_blocks
 from .blocks import third_diff_var as third_diff_var  # re-exported
 from .blocks import value_lattice as value_lattice
 from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
-from .geometry import rodrigues1
 from .health import EventLog, NisMonitor
 from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
-from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, field_world, index
+from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, index
 from .magstart import MagStart, mag_prior_from_raw
 from .measurements import (
     AccelModel,
@@ -320,20 +319,14 @@ class OnlineCalibrator:
         calibration error; rather than model that correlation, it starts with a σ wide enough that the
         missing correlation does not matter: the next updates re-derive the attitude properly."""
         c = self.config
-        f = self._calibrated("accel", a.mean(axis=0))
-        f = f / np.linalg.norm(f)
         if m.shape[0]:
             self._mag_collect(tm, m)
         use_mag = self._mag.enabled and m.shape[0] > 0
-        h = hw = None
-        if use_mag:
-            h = self._calibrated("mag", m.mean(axis=0))
-            h = h / np.linalg.norm(h)
-            if not self._mag.dip_known:
-                self._set_dip(dip_of(f, h))
-            hw = field_world(self.x[DIP : DIP + 1])[0]
-        s_y = c.att_init_sigma if use_mag else c.yaw_free_sigma
-        self.R_nom, P_att = initial_attitude(f, h, hw, c.att_init_sigma, s_y)
+        h = self._calibrated("mag", m.mean(axis=0)) if use_mag else None
+        self.R_nom, P_att, dip = attitude_start(self._calibrated("accel", a.mean(axis=0)), h, float(self.x[DIP]),
+                                                self._mag.dip_known, c.att_init_sigma, c.yaw_free_sigma)
+        if dip is not None:
+            self._set_dip(dip)
         reset_states(self.x, self.P, ATT, 0.0, P_att)
         self._att_ok = True
         self._mag.yaw_free = not use_mag
@@ -556,14 +549,10 @@ class OnlineCalibrator:
         fold its attitude error into the nominal (reset, USQUE), forget the heading while nothing sees it,
         and treat a non-finite state or non-positive variance as a divergence instead."""
         c = self.config
-        P_new = 0.5 * (P_new + P_new.T)
-        self.R_nom = self.R_nom @ rodrigues1(x_new[ATT])
-        x_new[ATT] = 0.0
-        if self._mag.yaw_free:
-            # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone):
-            # forget it — marginalise it out and give it back a diffuse σ. A small σ would assert a
-            # heading knowledge the data do not hold and leak spurious information into the alphas.
-            P_new = set_yaw_variance(P_new, self.R_nom, c.yaw_free_sigma**2, ATT)
+        # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone): it is
+        # forgotten, with a diffuse σ (a small one would leak spurious information into the alphas)
+        self.R_nom, x_new, P_new = fold_attitude(self.R_nom, x_new, P_new,
+                                                 c.yaw_free_sigma**2 if self._mag.yaw_free else None, ATT)
         if (not np.isfinite(x_new).all() or not np.isfinite(P_new).all()
                 or not (P_new.diagonal() > 0).all()):
             self._diverged("non-finite state or non-positive variance", tl)

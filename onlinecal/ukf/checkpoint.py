@@ -50,14 +50,23 @@ def _float(v: float) -> Any:
 def encode(v: Any) -> Any:
     """A JSON-able image of ``v``: dataclasses of :data:`PARTS` by their fields, arrays with shape and
     dtype, tuples and deques tagged, non-finite floats as ``{"__f__": "inf"}``."""
+    t = type(v)
+    if t is float:  # the bulk (trace rows, NIS windows): the fast path first
+        return v if math.isfinite(v) else {"__f__": repr(v)}
+    if t is str or t is int or t is bool or v is None:
+        return v
+    if t is list:
+        return [encode(x) for x in v]
     if dataclasses.is_dataclass(v) and not isinstance(v, type):
         name = type(v).__name__
         if PARTS.get(name) is not type(v):
             raise TypeError(f"checkpoint: {name} is not a registered part")
         return {"__dc__": name, **{f.name: encode(getattr(v, f.name)) for f in dataclasses.fields(v)}}
     if isinstance(v, np.ndarray):
-        return {"__nd__": [_float(x) if isinstance(x, float) else x for x in v.ravel().tolist()],
-                "shape": list(v.shape), "dtype": v.dtype.str}
+        flat = v.ravel().tolist()
+        if v.dtype.kind == "f" and not np.isfinite(v).all():
+            flat = [_float(x) for x in flat]
+        return {"__nd__": flat, "shape": list(v.shape), "dtype": v.dtype.str}
     if isinstance(v, (bool, np.bool_)):
         return bool(v)
     if isinstance(v, (int, np.integer)):
@@ -81,14 +90,17 @@ def encode(v: Any) -> Any:
 
 def decode(v: Any) -> Any:
     """The inverse of :func:`encode`."""
-    if isinstance(v, list):
+    t = type(v)
+    if t is list:
         return [decode(x) for x in v]
-    if not isinstance(v, dict):
+    if t is not dict:
         return v
     if "__f__" in v:
         return float(v["__f__"])
     if "__nd__" in v:
-        flat = [float(x["__f__"]) if isinstance(x, dict) else x for x in v["__nd__"]]
+        flat = v["__nd__"]
+        if any(type(x) is dict for x in flat):
+            flat = [float(x["__f__"]) if type(x) is dict else x for x in flat]
         return np.array(flat, dtype=np.dtype(v["dtype"])).reshape(v["shape"])
     if "__tuple__" in v:
         return tuple(decode(x) for x in v["__tuple__"])

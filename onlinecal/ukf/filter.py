@@ -53,7 +53,7 @@ from .measurements import (
     motion_measurements,
     rest_measurements,
 )
-from .noise import NoiseModel, lattice_plan, mag_unit_of
+from .noise import NoiseModel, lattice_plan, raw_field_unit
 from .noise import hold_sigma as hold_sigma  # re-exported
 from .outputs import (
     calibration_of,
@@ -212,11 +212,7 @@ class OnlineCalibrator:
 
     def _mag_unit_raw(self) -> float:
         """Raw field magnitude: from the mag scale once known, else the first raw samples' norm."""
-        if self._mag.enabled:
-            return mag_unit_of(self.x)
-        if self._lat.mag_buf:
-            return float(np.median(np.linalg.norm(np.asarray(self._lat.mag_buf), axis=1)))
-        return 1.0
+        return raw_field_unit(self.x, self._mag.enabled, self._lat.mag_buf)
 
     # ------------------------------------------------------------------------------------------
     # streaming
@@ -382,11 +378,9 @@ class OnlineCalibrator:
         use_mag, mag_changed = self._mag_block(tm_all[ml:mh], m_all[ml:mh], tl)
         spec = self._spec_noise()
         q = self._lat.q or {}
-        for s in SENSORS:
-            ev = self._noise.monitor(s, float(B.var3[s][b]), spec[s], q, c.noise_tau_blocks,
-                                     c.noise_high, c.noise_low)
-            if ev is not None:
-                self._event(ev[0], ev[1], tl)
+        for kind, detail in self._noise.monitor_all({s: float(B.var3[s][b]) for s in SENSORS}, spec, q,
+                                                    c.noise_tau_blocks, c.noise_high, c.noise_low):
+            self._event(kind, detail, tl)
         n = self._noise.noise(spec, q)
         held, resets, self._hold_new = self._holds.flags(B, b, n, q, self._rest_det.prev_means,
                                                          tuple(self.lay.hold_slice))
@@ -423,9 +417,7 @@ class OnlineCalibrator:
         judges against: on a vehicle the spec's, not the vibration-raised level (a vibrating vehicle is
         not at rest, and its accelerometer then measures thrust, not gravity)."""
         if self.config.vehicle == "auto":
-            why = self._vehicle.update(math.sqrt(max(0.0, float(B.var3["accel"][b]))), None, tl)
-            if why:
-                self._event("vehicle", why + VEHICLE_NOTE, tl)
+            self._vehicle_event(self._vehicle.update(math.sqrt(max(0.0, float(B.var3["accel"][b]))), None, tl), tl)
         return rest_noise(n, self._vehicle, self._noise.high["accel"], self._noise.ratio["accel"])
 
     def _vehicle_accel(self, M: Array, o: Array, a_mean: Array, sig_mean: float, dt: float, tl: float) -> float:
@@ -435,12 +427,13 @@ class OnlineCalibrator:
         c = self.config
         if c.vehicle == "auto" and not self._vehicle.active:
             f_all = np.einsum("sij,sj->si", M, a_mean - o)
-            why = self._vehicle.update(math.nan, self._models.acc.deviation(f_all, self._Wm, self._Wc, sig_mean), tl)
-            if why:
-                self._event("vehicle", why + VEHICLE_NOTE, tl)
-        if not self._vehicle.active:
-            return 0.0
-        return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt)
+            dev = self._models.acc.deviation(f_all, self._Wm, self._Wc, sig_mean)
+            self._vehicle_event(self._vehicle.update(math.nan, dev, tl), tl)
+        return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt) if self._vehicle.active else 0.0
+
+    def _vehicle_event(self, why: str | None, tl: float) -> None:
+        if why:
+            self._event("vehicle", why + VEHICLE_NOTE, tl)
 
     def _motion_step(self, B: Blocks, b: int, t: Array, a: Array, T: Array, n: dict[str, float],
                      held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:

@@ -6,7 +6,9 @@ every log — a campaign is often several files (statics, turns, a sphere).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -37,7 +39,7 @@ def _drop_sigma(c: SensorCalibration, st: StepReport | None) -> SensorCalibratio
     return SensorCalibration(c.bias, c.matrix, {k: v for k, v in c.sigma.items() if k not in und and k != "matrix"})
 
 
-def _rotated_sigma(sigma: dict, extra_deg: float) -> dict:
+def _rotated_sigma(sigma: Mapping[str, Any], extra_deg: float) -> dict[str, Any]:
     """σ of a sensor whose frame was turned by a rotation known to ``extra_deg`` (1σ): alpha widened."""
     out = {k: np.asarray(v, float) for k, v in sigma.items()}
     if "alpha" in out:

@@ -122,6 +122,7 @@ def _guarded_reader_class() -> type:
 
         class GuardedDFReader(DFReader.DFReader_binary):
             stalls = 0
+            offset: int  # set by DFReader_binary.__init__ (pymavlink is untyped: mypy cannot infer it)
 
             def _parse_next(self) -> Any:
                 while True:

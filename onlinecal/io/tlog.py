@@ -125,6 +125,7 @@ class TlogReader:
                                f"not a MAVLink telemetry log?")
             shown = ", ".join(kinds[:8]) + (", ..." if len(kinds) > 8 else "")
             raise LogError(self.path, f"no IMU messages ({', '.join(IMU_MESSAGES)}) in the log; it holds {shown}")
+        assert chosen is not None  # seen is not empty, and the first IMU message chose a source
         self._flush(st, filt, asm)
         assert chosen is not None  # seen is not empty, so a source was chosen
         self.source = seen[chosen]

@@ -18,7 +18,8 @@ from numpy.typing import NDArray
 
 from ..model import decompose
 from .config import UKFConfig
-from .geometry import triad, yaw_rotation
+from .geometry import rodrigues1, triad, yaw_rotation
+from .layout import field_world
 
 Array = NDArray[np.float64]
 E_Z = np.array([0.0, 0.0, 1.0])
@@ -39,6 +40,36 @@ def initial_attitude(f: Array, h: Array | None, h_world: Array | None, s_rp: flo
     # σ given about the world axes (tilt, heading), turned into the body-frame error
     P_att: Array = R.T @ np.diag([s_rp, s_rp, s_y]) ** 2 @ R
     return R, P_att
+
+
+def attitude_start(f: Array, h: Array | None, dip: float, dip_known: bool, s_rp: float, s_y_free: float
+                   ) -> tuple[Array, Array, float | None]:
+    """The attitude start of a block: R (3, 3) and the attitude error's covariance (3, 3)
+    (:func:`initial_attitude`) from the calibrated mean specific force f (3,) and, where the mag is
+    usable, the calibrated mean field h (3,) (else the heading gets the diffuse σ ``s_y_free``). The
+    field's world direction uses the dip state ``dip`` (rad) once ``dip_known``; before, the dip from
+    these readings, returned as the third value for the caller's dip state (None: leave it)."""
+    fu = f / np.linalg.norm(f)
+    if h is None:
+        R, P_att = initial_attitude(fu, None, None, s_rp, s_y_free)
+        return R, P_att, None
+    hu = h / np.linalg.norm(h)
+    new_dip = None if dip_known else dip_of(fu, hu)
+    hw = field_world(np.array([dip if new_dip is None else new_dip]))[0]
+    R, P_att = initial_attitude(fu, hu, hw, s_rp, s_rp)
+    return R, P_att, new_dip
+
+
+def fold_attitude(R_nom: Array, x: Array, P: Array, yaw_var: float | None, att: slice) -> tuple[Array, Array, Array]:
+    """After an update (USQUE reset): the attitude error of x (n,) folded into the nominal R_nom (3, 3) and
+    set to 0 (x is changed in place), P (n, n) symmetrised; ``yaw_var``: nothing sees the heading, so its
+    knowledge is marginalised out and given this variance (:func:`set_yaw_variance`). Returns (R, x, P)."""
+    P = 0.5 * (P + P.T)
+    R = R_nom @ rodrigues1(x[att])
+    x[att] = 0.0
+    if yaw_var is not None:
+        P = set_yaw_variance(P, R, yaw_var, att)
+    return R, x, P
 
 
 def dip_of(f: Array, h: Array) -> float:
@@ -175,6 +206,55 @@ def _ellipsoid_refine(x: Array, o: Array, r: float, c: UKFConfig) -> tuple[Array
 _IU = np.triu_indices(3)
 
 
+_JJ, _KK = _IU
+_OFF = (_JJ != _KK).astype(float)
+
+
+def _ell_resid_jac(p: Array, pts: Array) -> tuple[Array, Array]:
+    """Residuals r (N,) = ‖M (x − o)‖ − 1 and their Jacobian (N, 9) for p = (o, upper triangle of M)
+    (:func:`ellipsoid_gn` gives the formulas)."""
+    o = p[:3]
+    M = np.zeros((3, 3))
+    M[_IU] = p[3:]
+    M = M + np.triu(M, 1).T
+    d = pts - o
+    y = d @ M
+    ny = np.sqrt(np.einsum("ij,ij->i", y, y))
+    nv = y / ny[:, None]
+    J = np.empty((pts.shape[0], 9))
+    J[:, :3] = -(nv @ M)
+    J[:, 3:] = nv[:, _JJ] * d[:, _KK] + _OFF * nv[:, _KK] * d[:, _JJ]
+    return ny - 1.0, J
+
+
+def _ell_lm(p: Array, pts: Array, max_iter: int) -> Array:
+    """Levenberg–Marquardt on :func:`_ell_resid_jac` from p (9,), at most ``max_iter`` steps."""
+    lam = 1e-3
+    r, J = _ell_resid_jac(p, pts)
+    cost = float(r @ r)
+    for _ in range(max_iter):
+        A = J.T @ J
+        g = J.T @ r
+        try:
+            step = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
+        except np.linalg.LinAlgError:
+            break
+        p_new = p + step
+        r_new, J_new = _ell_resid_jac(p_new, pts)
+        c_new = float(r_new @ r_new)
+        if np.isfinite(c_new) and c_new < cost:
+            done = cost - c_new < 1e-12 * cost
+            p, r, J, cost = p_new, r_new, J_new, c_new
+            lam = max(lam / 10.0, 1e-12)
+            if done:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e8:
+                break
+    return p
+
+
 def ellipsoid_gn(x: Array, o0: Array, M0: Array, max_iter: int = 40,
                  reject_sigma: float = 5.0) -> tuple[Array, Array, Array, float]:
     """Geometric ellipsoid fit ‖M (x − o)‖ = 1 (Zhang et al. eq. 17) by Levenberg–Marquardt with the
@@ -187,58 +267,15 @@ def ellipsoid_gn(x: Array, o0: Array, M0: Array, max_iter: int = 40,
     rms). A fixed iteration budget keeps the cost bounded (a few ms) where the data do not carry an
     ellipsoid; the caller rejects such fits by their covariance.
     """
-    jj, kk = _IU
-    off = (jj != kk).astype(float)
-
-    def resid_jac(p: Array, pts: Array) -> tuple[Array, Array]:
-        o = p[:3]
-        M = np.zeros((3, 3))
-        M[_IU] = p[3:]
-        M = M + np.triu(M, 1).T
-        d = pts - o
-        y = d @ M
-        ny = np.sqrt(np.einsum("ij,ij->i", y, y))
-        nv = y / ny[:, None]
-        J = np.empty((pts.shape[0], 9))
-        J[:, :3] = -(nv @ M)
-        J[:, 3:] = nv[:, jj] * d[:, kk] + off * nv[:, kk] * d[:, jj]
-        return ny - 1.0, J
-
-    def solve(p: Array, pts: Array) -> Array:
-        lam = 1e-3
-        r, J = resid_jac(p, pts)
-        cost = float(r @ r)
-        for _ in range(max_iter):
-            A = J.T @ J
-            g = J.T @ r
-            try:
-                step = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
-            except np.linalg.LinAlgError:
-                break
-            p_new = p + step
-            r_new, J_new = resid_jac(p_new, pts)
-            c_new = float(r_new @ r_new)
-            if np.isfinite(c_new) and c_new < cost:
-                done = cost - c_new < 1e-12 * cost
-                p, r, J, cost = p_new, r_new, J_new, c_new
-                lam = max(lam / 10.0, 1e-12)
-                if done:
-                    break
-            else:
-                lam *= 10.0
-                if lam > 1e8:
-                    break
-        return p
-
-    p = solve(np.concatenate([o0, M0[_IU]]), x)
+    p = _ell_lm(np.concatenate([o0, M0[_IU]]), x, max_iter)
     keep = np.ones(x.shape[0], bool)
     if x.shape[0] >= 36:
-        r, _ = resid_jac(p, x)
+        r, _ = _ell_resid_jac(p, x)
         mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
         keep = np.abs(r) <= max(reject_sigma * mad, 1e-12)
         if keep.sum() >= 9 and not keep.all():
-            p = solve(p, x[keep])
-    r, J = resid_jac(p, x[keep])
+            p = _ell_lm(p, x[keep], max_iter)
+    r, J = _ell_resid_jac(p, x[keep])
     s2 = float(r @ r) / max(1, int(keep.sum()) - 9)
     try:
         cov: Array = np.asarray(np.linalg.inv(J.T @ J) * s2, float)

@@ -1,65 +1,162 @@
-"""Checkpoint of the online calibrator: everything needed to resume, as a JSON-able dict."""
+"""Checkpoint of the online calibrator: everything needed to resume, as a JSON-able dict.
+
+Generic over the filter's parts: each part is a dataclass (:mod:`.blocks`, :mod:`.noise`, :mod:`.health`,
+:mod:`.rest`, :mod:`.vehicle`, :mod:`.magstart` …) serialised field by field (:func:`encode`), so a field
+added to a part is saved and restored without touching this module. numpy arrays keep their shape and
+dtype, tuples stay tuples, and non-finite floats (JSON has none) are tagged; every float round-trips
+bit-exactly through JSON. Schema /2 (the hand-mapped keys) still loads.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections import deque
 from typing import Any
 
 import numpy as np
 
 from ..model import Calibration
+from ..specs import SensorSpec
 from .attitude_init import MagCollector
 from .blocks import HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer
 from .config import UKFConfig
-from .health import NisMonitor, finite_or_none, none_to_inf
+from .health import EventLog, NisMonitor, none_to_inf
+from .magstart import MagStart
+from .noise import NoiseModel
 from .rest import RestAccumulator
 from .vehicle import MotionCoverage, VehicleDetector
 
-STATE_SCHEMA = "onlinecal.ukf-state/2"
+STATE_SCHEMA = "onlinecal.ukf-state/3"
+SCHEMA_V2 = "onlinecal.ukf-state/2"
+
+# the parts a checkpoint may construct (by class name; nothing else is ever instantiated from a file)
+PARTS: dict[str, type] = {c.__name__: c for c in (
+    SampleBuffer, Lattice, RailDetector, RestDetector, HoldTracker, NisMonitor, EventLog, NoiseModel,
+    SensorSpec, VehicleDetector, MotionCoverage, RestAccumulator, MagStart, MagCollector)}
+
+# the filter's attributes that change while it runs, besides x and P (plain lists at the top level);
+# everything else follows from config, init and holds
+STATE_ATTRS = ("R_nom", "prior_x", "prior_sigma", "_hold_sigma", "_rate", "_L", "_buf", "_t_last",
+               "_w_last", "_att_ok", "_next_trace", "_n_imu", "_n_blocks", "_nis", "_log", "_trace",
+               "_rest_det", "_lat", "_holds", "_hold_new", "_noise", "_rails", "_T0", "_vehicle", "_coverage",
+               "_rest_acc", "_mag")
+
+
+def _float(v: float) -> Any:
+    return v if math.isfinite(v) else {"__f__": repr(v)}
+
+
+def encode(v: Any) -> Any:
+    """A JSON-able image of ``v``: dataclasses of :data:`PARTS` by their fields, arrays with shape and
+    dtype, tuples and deques tagged, non-finite floats as ``{"__f__": "inf"}``."""
+    t = type(v)
+    if t is float:  # the bulk (trace rows, NIS windows): the fast path first
+        return v if math.isfinite(v) else {"__f__": repr(v)}
+    if t is str or t is int or t is bool or v is None:
+        return v
+    if t is list:
+        return [encode(x) for x in v]
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        name = type(v).__name__
+        if PARTS.get(name) is not type(v):
+            raise TypeError(f"checkpoint: {name} is not a registered part")
+        return {"__dc__": name, **{f.name: encode(getattr(v, f.name)) for f in dataclasses.fields(v)}}
+    if isinstance(v, np.ndarray):
+        flat = v.ravel().tolist()
+        if v.dtype.kind == "f" and not np.isfinite(v).all():
+            flat = [_float(x) for x in flat]
+        return {"__nd__": flat, "shape": list(v.shape), "dtype": v.dtype.str}
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return _float(float(v))
+    if isinstance(v, tuple):
+        return {"__tuple__": [encode(x) for x in v]}
+    if isinstance(v, deque):
+        return {"__deque__": [encode(x) for x in v], "maxlen": v.maxlen}
+    if isinstance(v, list):
+        return [encode(x) for x in v]
+    if isinstance(v, dict):
+        if not all(isinstance(k, str) for k in v):
+            raise TypeError("checkpoint: a dict with non-string keys")
+        return {k: encode(x) for k, x in v.items()}
+    if v is None or isinstance(v, str):
+        return v
+    raise TypeError(f"checkpoint: cannot encode a {type(v).__name__}")
+
+
+def decode(v: Any) -> Any:
+    """The inverse of :func:`encode`."""
+    t = type(v)
+    if t is list:
+        return [decode(x) for x in v]
+    if t is not dict:
+        return v
+    if "__f__" in v:
+        return float(v["__f__"])
+    if "__nd__" in v:
+        flat = v["__nd__"]
+        if any(type(x) is dict for x in flat):
+            flat = [float(x["__f__"]) if type(x) is dict else x for x in flat]
+        return np.array(flat, dtype=np.dtype(v["dtype"])).reshape(v["shape"])
+    if "__tuple__" in v:
+        return tuple(decode(x) for x in v["__tuple__"])
+    if "__deque__" in v:
+        return deque((decode(x) for x in v["__deque__"]), maxlen=v["maxlen"])
+    if "__dc__" in v:
+        cls = PARTS.get(v["__dc__"])
+        if cls is None:
+            raise ValueError(f"UKF state: unknown part {v['__dc__']!r}")
+        return cls(**{k: decode(x) for k, x in v.items() if k != "__dc__"})
+    return {k: decode(x) for k, x in v.items()}
 
 
 def get_state(f: Any) -> dict[str, Any]:
-    """The state of the calibrator ``f`` (plain lists and numbers)."""
-    rd = f._rest_det
-    return {
-        "schema": STATE_SCHEMA,
-        "config": f.config.to_dict(),
-        "init": f.init.to_dict() if f.init is not None else None,
-        "names": list(f.names), "holds": list(f.lay.hold_slice), "hold_sigma": dict(f._hold_sigma),
-        "x": f.x.tolist(), "P": f.P.tolist(), "R_nom": f.R_nom.tolist(),
-        "prior_sigma": f.prior_sigma.tolist(), "prior_x": f.prior_x.tolist(),
-        "rate": f._rate, "L": f._L,
-        **f._buf.to_dict(),
-        "t_last": f._t_last, "w_last": f._w_last.tolist(), "att_ok": f._att_ok,
-        "yaw_free": f._yaw_free,
-        "align_yaw_next": f._align_yaw_next,
-        "mag_enabled": f.mag_enabled, "dip_known": f.dip_known, "mag_buf": f._mag_buf.buf.tolist(),
-        "mag_buf_next": finite_or_none(f._mag_buf.next_t), "mag_fit_next": finite_or_none(f._mag_fit_next),
-        "next_trace": finite_or_none(f._next_trace), "n_imu": f._n_imu, "n_blocks": f._n_blocks,
-        "nis": f._nis.stats, "events": f._log.events, "n_events": f._log.total, "trace": list(f._trace),
-        "rest_count": rd.count,
-        "prev_means": None if rd.prev_means is None else [
-            None if v is None else np.asarray(v).tolist() for v in rd.prev_means],
-        "q": f._lat.q, "q_mag_buf": f._lat.mag_buf, "held": f._holds.held,
-        "noise_ratio": f._noise.ratio, "noise_high": f._noise.high,
-        "rail": f._rails.rail, "run": {k: [list(r) for r in v] for k, v in f._rails.run.items()},
-        "clip_on": f._rails.clip_on, "T0": f._T0,
-        "rest_acc": None if f._rest_acc is None else f._rest_acc.to_dict(),
-        "vehicle": f._vehicle.to_dict(), "coverage": f._coverage.get_state(),
-    }
+    """The state of the calibrator ``f`` (plain lists and numbers): its config, init and layout, then
+    :data:`STATE_ATTRS` by :func:`encode`."""
+    return {"schema": STATE_SCHEMA, "config": f.config.to_dict(),
+            "init": f.init.to_dict() if f.init is not None else None,
+            "names": list(f.names), "holds": list(f.lay.hold_slice),
+            "x": f.x.tolist(), "P": f.P.tolist(),  # plain (n,), (n, n): what a reader checks first
+            "state": {a: encode(getattr(f, a)) for a in STATE_ATTRS}}
+
+
+def check_schema(d: Any) -> str:
+    """The checkpoint's schema; ValueError naming it unless it is one this version reads."""
+    schema = d.get("schema") if isinstance(d, dict) else None
+    if schema not in (STATE_SCHEMA, SCHEMA_V2):
+        raise ValueError(f"not a UKF state (schema {schema!r}, expected {STATE_SCHEMA} or {SCHEMA_V2})")
+    return str(schema)
 
 
 def set_state(f: Any, d: dict[str, Any]) -> None:
-    """Restore the calibrator ``f`` from :func:`get_state` (its init and config are replaced)."""
-    if d.get("schema") != STATE_SCHEMA:
-        raise ValueError(f"not a UKF state (schema {d.get('schema')!r}, expected {STATE_SCHEMA})")
+    """Restore the calibrator ``f`` from :func:`get_state` (its init and config are replaced); a
+    checkpoint of schema /2 is read by its own mapping."""
+    schema = check_schema(d)
     f.config = UKFConfig.from_dict(d["config"])
-    c = f.config
     f.init = Calibration.from_dict(d["init"]) if d["init"] is not None else None
     f._configure()
     f._set_layout(tuple(d["holds"]))
     if list(f.names) != list(d["names"]):
         raise ValueError("UKF state: its state names do not match its config")
+    if schema == SCHEMA_V2:
+        _set_state_v2(f, d)
+        return
+    st = d["state"]
+    missing = [a for a in STATE_ATTRS if a not in st]
+    if missing:
+        raise ValueError(f"UKF state: {len(missing)} part(s) missing ({', '.join(missing[:4])})")
+    f.x, f.P = np.asarray(d["x"], float).reshape(f.n), np.asarray(d["P"], float).reshape(f.n, f.n)
+    for a in STATE_ATTRS:
+        setattr(f, a, decode(st[a]))
+
+
+def _set_state_v2(f: Any, d: dict[str, Any]) -> None:
+    """Restore the calibrator ``f`` from a checkpoint of schema /2 (the hand-mapped keys of the parts)."""
+    c = f.config
     f._hold_sigma = {k: float(v) for k, v in d["hold_sigma"].items()}
     f.x = np.asarray(d["x"], float)
     f.P = np.asarray(d["P"], float)
@@ -71,12 +168,9 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
     f._t_last = d["t_last"]
     f._w_last = np.asarray(d["w_last"], float)
     f._att_ok = bool(d["att_ok"])
-    f._yaw_free = bool(d["yaw_free"])
-    f._align_yaw_next = bool(d["align_yaw_next"])
-    f.mag_enabled = bool(d["mag_enabled"])
-    f.dip_known = bool(d["dip_known"])
-    f._mag_buf = MagCollector(np.asarray(d["mag_buf"], float).reshape(-1, 3), none_to_inf(d["mag_buf_next"]))
-    f._mag_fit_next = none_to_inf(d["mag_fit_next"])
+    f._mag = MagStart(bool(d["mag_enabled"]), bool(d["dip_known"]),
+                      MagCollector(np.asarray(d["mag_buf"], float).reshape(-1, 3), none_to_inf(d["mag_buf_next"])),
+                      none_to_inf(d["mag_fit_next"]), bool(d["align_yaw_next"]), bool(d["yaw_free"]))
     f._next_trace = none_to_inf(d["next_trace"])
     f._n_imu, f._n_blocks = int(d["n_imu"]), int(d["n_blocks"])
     f._nis = NisMonitor(c.nis_window, c.nis_band_p, c.divergence_factor, c.divergence_windows)

@@ -33,16 +33,16 @@ from scipy.stats import chi2
 from ..io.base import ImuData
 from ..model import SENSORS, Calibration
 from . import checkpoint
-from .attitude_init import MagCollector, dip_of, fit_mag_cold, initial_attitude, set_yaw_variance, yaw_to_north
+from .attitude_init import attitude_start, fold_attitude
 from .attitude_init import ellipsoid_gn as ellipsoid_gn  # re-exported (older imports)
 from .blocks import Blocks, HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer, block_stats, cut_blocks
 from .blocks import third_diff_var as third_diff_var  # re-exported
 from .blocks import value_lattice as value_lattice
 from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
-from .geometry import rodrigues1
 from .health import EventLog, NisMonitor
 from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
-from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, field_world, index
+from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, index
+from .magstart import MagStart, mag_prior_from_raw
 from .measurements import (
     AccelModel,
     MagModel,
@@ -53,15 +53,24 @@ from .measurements import (
     motion_measurements,
     rest_measurements,
 )
-from .noise import NoiseModel, lattice_plan, mag_unit_of
+from .noise import NoiseModel, lattice_plan, raw_field_unit
 from .noise import hold_sigma as hold_sigma  # re-exported
-from .outputs import calibration_of, extensions_of, extensions_sigma, missing_motion, observability, trace_row
+from .outputs import (
+    calibration_of,
+    extensions_of,
+    extensions_sigma,
+    missing_motion,
+    observability,
+    report_of,
+    temp_regressor,
+    trace_row,
+)
 from .predict import block_process_noise, propagate_sigma_points
 from .propagate import sensor_models
 from .rest import RestAccumulator
 from .state import StateLayout, choose_gauge, grow, initial_state, prior, reset_states
 from .unscented import Gating, Measurement, UpdateResult, merwe_weights
-from .vehicle import MotionCoverage, VehicleDetector, observability_report, vehicle_accel_var
+from .vehicle import VEHICLE_NOTE, MotionCoverage, VehicleDetector, rest_noise, vehicle_accel_var
 
 Array = NDArray[np.float64]
 STATE_SCHEMA = checkpoint.STATE_SCHEMA
@@ -147,13 +156,8 @@ class OnlineCalibrator:
         self._hold_sigma: dict[str, float] = {}
         self.x, self.P, self.prior_x, self.prior_sigma = initial_state(self.lay, *self._prior())
         self.R_nom = np.eye(3)
-        self.mag_enabled = self.init is not None and self.init.mag is not None
-        self.dip_known = False
-        self._mag_buf = MagCollector()
-        self._mag_fit_next = -math.inf
+        self._mag = MagStart(enabled=self.init is not None and self.init.mag is not None)
         self._att_ok = False
-        self._yaw_free = True
-        self._align_yaw_next = False
         self._rest_det = RestDetector()
         self._rest_acc: RestAccumulator | None = None
         self._hold_new = False
@@ -208,11 +212,7 @@ class OnlineCalibrator:
 
     def _mag_unit_raw(self) -> float:
         """Raw field magnitude: from the mag scale once known, else the first raw samples' norm."""
-        if self.mag_enabled:
-            return mag_unit_of(self.x)
-        if self._lat.mag_buf:
-            return float(np.median(np.linalg.norm(np.asarray(self._lat.mag_buf), axis=1)))
-        return 1.0
+        return raw_field_unit(self.x, self._mag.enabled, self._lat.mag_buf)
 
     # ------------------------------------------------------------------------------------------
     # streaming
@@ -315,93 +315,54 @@ class OnlineCalibrator:
         calibration error; rather than model that correlation, it starts with a σ wide enough that the
         missing correlation does not matter: the next updates re-derive the attitude properly."""
         c = self.config
-        f = self._calibrated("accel", a.mean(axis=0))
-        f = f / np.linalg.norm(f)
         if m.shape[0]:
             self._mag_collect(tm, m)
-        use_mag = self.mag_enabled and m.shape[0] > 0
-        h = hw = None
-        if use_mag:
-            h = self._calibrated("mag", m.mean(axis=0))
-            h = h / np.linalg.norm(h)
-            if not self.dip_known:
-                self._set_dip(dip_of(f, h))
-            hw = field_world(self.x[DIP : DIP + 1])[0]
-        s_y = c.att_init_sigma if use_mag else c.yaw_free_sigma
-        self.R_nom, P_att = initial_attitude(f, h, hw, c.att_init_sigma, s_y)
+        use_mag = self._mag.enabled and m.shape[0] > 0
+        h = self._calibrated("mag", m.mean(axis=0)) if use_mag else None
+        self.R_nom, P_att, dip = attitude_start(self._calibrated("accel", a.mean(axis=0)), h, float(self.x[DIP]),
+                                                self._mag.dip_known, c.att_init_sigma, c.yaw_free_sigma)
+        if dip is not None:
+            self._set_dip(dip)
         reset_states(self.x, self.P, ATT, 0.0, P_att)
         self._att_ok = True
-        self._yaw_free = not use_mag
+        self._mag.yaw_free = not use_mag
 
     def _set_dip(self, dip: float) -> None:
         reset_states(self.x, self.P, DIP, dip, self.config.dip_sigma**2)
-        self.dip_known = True
+        self._mag.dip_known = True
 
     def _mag_collect(self, tm: Array, m: Array) -> None:
-        if not self.mag_enabled:
-            if not self._mag_buf.buf.shape[0] and m.shape[0] and (self.init is None or self.init.mag is None):
-                self._mag_prior_from_raw(m)
-            self._mag_buf.add(tm, m, self.config.mag_buffer_max)
-
-    def _mag_prior_from_raw(self, m: Array) -> None:
-        """Cold mag prior in the raw unit, from the first samples' field magnitude |m| (N, 3): scale 1/|m|
-        with σ ``cold_sigma`` relative to it (:func:`.state.prior` assumes a unit field). The mag is not
-        used before its fit, so this only changes what a log that never fits it reports: its prior."""
-        r = float(np.median(np.linalg.norm(m, axis=1)))
-        if not (math.isfinite(r) and r > 0):
-            return
-        sl = SENSOR_SLICE["mag"]
-        cs = self.config.cold_sigma["mag"]
-        x = np.concatenate([np.zeros(3), np.full(3, 1.0 / r), np.zeros(6)])
-        sig = np.concatenate([np.full(3, cs["bias"] * r), np.full(3, cs["scale"] / r),
-                              np.full(3, cs["alpha"]), np.full(3, cs["xi"])])
-        if self.gauge == "mag":  # its held terms define B: keep their prior
-            x[6:], sig[6:] = self.x[sl][6:], np.sqrt(np.diag(self.P)[sl][6:])
-        self.x[sl] = x
-        self.P[sl, :] = 0.0
-        self.P[:, sl] = 0.0
-        self.P[sl, sl] = np.diag(sig**2)
-        self.prior_x[sl], self.prior_sigma[sl] = x, sig
-
-    def _try_mag_fit(self, t: float) -> None:
-        """The mag's cold start (:func:`.attitude_init.fit_mag_cold`), tried once a second once enough
-        samples are in; the filter's yaw is aligned to the field at the next mag block."""
-        c = self.config
-        if t < self._mag_fit_next or self._mag_buf.buf.shape[0] < c.mag_fit_min_samples:
-            return
-        self._mag_fit_next = t + 1.0
-        fit = fit_mag_cold(self._mag_buf.buf, c)
-        if fit is None:
-            return
-        sl = SENSOR_SLICE["mag"]
-        reset_states(self.x, self.P, sl, fit.x, np.diag(fit.sigma**2))
-        self.prior_sigma[sl] = fit.prior_sigma
-        self.prior_x[sl] = self.x[sl]
-        self.mag_enabled = True
-        self._mag_buf.buf = np.zeros((0, 3))
-        self._event("mag_cold_start", fit.detail, t)
-        self._align_yaw_next = True
-
-    def _align_yaw(self, m: Array) -> None:
-        """First mag block after the cold fit: dip from the field's world direction, yaw turned to north."""
-        dip, self.R_nom = yaw_to_north(self.R_nom, self._calibrated("mag", m.mean(axis=0)))
-        self.P = set_yaw_variance(self.P, self.R_nom, self.config.att_init_sigma**2, ATT)
-        self._set_dip(dip)  # (the dip's rows do not enter the attitude block: the order does not matter)
-        self._yaw_free = False
-        self._align_yaw_next = False
+        cold = self.init is None or self.init.mag is None
+        if self._mag.collect(tm, m, cold, self.config.mag_buffer_max):
+            sl = SENSOR_SLICE["mag"]
+            held = (self.x[sl][6:], np.sqrt(np.diag(self.P)[sl][6:])) if self.gauge == "mag" else None
+            pr = mag_prior_from_raw(m, self.config.cold_sigma["mag"], held)
+            if pr is not None:
+                reset_states(self.x, self.P, sl, pr[0], np.diag(pr[1] ** 2))
+                self.prior_x[sl], self.prior_sigma[sl] = pr
 
     def _mag_block(self, tm: Array, m: Array, tl: float) -> tuple[bool, bool]:
-        """The mag's part of a block: collect and fit while cold, align the yaw after the fit. Returns
-        whether the block's mag is used and whether the mag's state changed (which ends a rest)."""
-        before = (self.mag_enabled, self._align_yaw_next)
+        """The mag's part of a block (:class:`.magstart.MagStart`): collect and fit while cold, align the
+        yaw after the fit. Returns whether the block's mag is used and whether the mag's state changed
+        (which ends a rest)."""
+        ms, c = self._mag, self.config
+        before = (ms.enabled, ms.align_next)
         n_m = m.shape[0]
-        if n_m and not self.mag_enabled:
+        if n_m and not ms.enabled:
             self._mag_collect(tm, m)
-            self._try_mag_fit(tl)
-        if self.mag_enabled and self._align_yaw_next and n_m:
-            self._align_yaw(m)
-        use_mag = self.mag_enabled and n_m > 0 and not self._align_yaw_next
-        return use_mag, before != (self.mag_enabled, self._align_yaw_next)
+            fit = ms.try_fit(tl, c)
+            if fit is not None:
+                sl = SENSOR_SLICE["mag"]
+                reset_states(self.x, self.P, sl, fit.x, np.diag(fit.sigma**2))
+                self.prior_sigma[sl] = fit.prior_sigma
+                self.prior_x[sl] = self.x[sl]
+                self._event("mag_cold_start", fit.detail, tl)
+        if ms.enabled and ms.align_next and n_m:
+            dip, self.R_nom, self.P = ms.align(self.R_nom, self.P, self._calibrated("mag", m.mean(axis=0)),
+                                               c.att_init_sigma**2, ATT)
+            self._set_dip(dip)  # (the dip's rows do not enter the attitude block: the order does not matter)
+        use_mag = ms.enabled and n_m > 0 and not ms.align_next
+        return use_mag, before != (ms.enabled, ms.align_next)
 
     # ------------------------------------------------------------------------------------------
     # the filter step
@@ -417,11 +378,9 @@ class OnlineCalibrator:
         use_mag, mag_changed = self._mag_block(tm_all[ml:mh], m_all[ml:mh], tl)
         spec = self._spec_noise()
         q = self._lat.q or {}
-        for s in SENSORS:
-            ev = self._noise.monitor(s, float(B.var3[s][b]), spec[s], q, c.noise_tau_blocks,
-                                     c.noise_high, c.noise_low)
-            if ev is not None:
-                self._event(ev[0], ev[1], tl)
+        for kind, detail in self._noise.monitor_all({s: float(B.var3[s][b]) for s in SENSORS}, spec, q,
+                                                    c.noise_tau_blocks, c.noise_high, c.noise_low):
+            self._event(kind, detail, tl)
         n = self._noise.noise(spec, q)
         held, resets, self._hold_new = self._holds.flags(B, b, n, q, self._rest_det.prev_means,
                                                          tuple(self.lay.hold_slice))
@@ -447,13 +406,8 @@ class OnlineCalibrator:
 
     def _temp_reg(self, T: Array) -> Array:
         """Regressor T − T0 (°C) of the temperature extensions; 0 where the log has no temperature."""
-        if self._T0 is None:
-            fin = T[np.isfinite(T)]
-            if fin.size:
-                self._T0 = float(fin[0])
-        if self._T0 is None:
-            return np.zeros_like(T)
-        return np.where(np.isfinite(T), T - self._T0, 0.0)
+        reg, self._T0 = temp_regressor(T, self._T0)
+        return reg
 
     def _has_temp(self) -> bool:
         return any(e.startswith("temperature_bias") for e in self.lay.ext_slice)
@@ -463,12 +417,8 @@ class OnlineCalibrator:
         judges against: on a vehicle the spec's, not the vibration-raised level (a vibrating vehicle is
         not at rest, and its accelerometer then measures thrust, not gravity)."""
         if self.config.vehicle == "auto":
-            why = self._vehicle.update(math.sqrt(max(0.0, float(B.var3["accel"][b]))), None, tl)
-            if why:
-                self._event("vehicle", why + ": vehicle acceleration modelled from here on", tl)
-        if self._vehicle.active and self._noise.high["accel"]:
-            return dict(n, accel=n["accel"] / math.sqrt(self._noise.ratio["accel"]))
-        return n
+            self._vehicle_event(self._vehicle.update(math.sqrt(max(0.0, float(B.var3["accel"][b]))), None, tl), tl)
+        return rest_noise(n, self._vehicle, self._noise.high["accel"], self._noise.ratio["accel"])
 
     def _vehicle_accel(self, M: Array, o: Array, a_mean: Array, sig_mean: float, dt: float, tl: float) -> float:
         """Variance (m/s²)² the vehicle's unknown acceleration adds to a moving block's accel update
@@ -477,12 +427,13 @@ class OnlineCalibrator:
         c = self.config
         if c.vehicle == "auto" and not self._vehicle.active:
             f_all = np.einsum("sij,sj->si", M, a_mean - o)
-            why = self._vehicle.update(math.nan, self._models.acc.deviation(f_all, self._Wm, self._Wc, sig_mean), tl)
-            if why:
-                self._event("vehicle", why + ": vehicle acceleration modelled from here on", tl)
-        if not self._vehicle.active:
-            return 0.0
-        return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt)
+            dev = self._models.acc.deviation(f_all, self._Wm, self._Wc, sig_mean)
+            self._vehicle_event(self._vehicle.update(math.nan, dev, tl), tl)
+        return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt) if self._vehicle.active else 0.0
+
+    def _vehicle_event(self, why: str | None, tl: float) -> None:
+        if why:
+            self._event("vehicle", why + VEHICLE_NOTE, tl)
 
     def _motion_step(self, B: Blocks, b: int, t: Array, a: Array, T: Array, n: dict[str, float],
                      held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
@@ -591,14 +542,10 @@ class OnlineCalibrator:
         fold its attitude error into the nominal (reset, USQUE), forget the heading while nothing sees it,
         and treat a non-finite state or non-positive variance as a divergence instead."""
         c = self.config
-        P_new = 0.5 * (P_new + P_new.T)
-        self.R_nom = self.R_nom @ rodrigues1(x_new[ATT])
-        x_new[ATT] = 0.0
-        if self._yaw_free:
-            # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone):
-            # forget it — marginalise it out and give it back a diffuse σ. A small σ would assert a
-            # heading knowledge the data do not hold and leak spurious information into the alphas.
-            P_new = set_yaw_variance(P_new, self.R_nom, c.yaw_free_sigma**2, ATT)
+        # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone): it is
+        # forgotten, with a diffuse σ (a small one would leak spurious information into the alphas)
+        self.R_nom, x_new, P_new = fold_attitude(self.R_nom, x_new, P_new,
+                                                 c.yaw_free_sigma**2 if self._mag.yaw_free else None, ATT)
         if (not np.isfinite(x_new).all() or not np.isfinite(P_new).all()
                 or not (P_new.diagonal() > 0).all()):
             self._diverged("non-finite state or non-positive variance", tl)
@@ -629,10 +576,7 @@ class OnlineCalibrator:
         sl = np.r_[np.arange(SENSOR_SLICE["mag"].start, SENSOR_SLICE["mag"].stop), DIP]
         reset_states(self.x, self.P, sl, x0[sl], np.diag(sig0[sl] ** 2))
         self.prior_sigma[sl], self.prior_x[sl] = sig0[sl], x0[sl]
-        self.mag_enabled = self.init is not None and self.init.mag is not None
-        self.dip_known = False
-        self._mag_buf, self._mag_fit_next = MagCollector(), -math.inf
-        self._align_yaw_next = False
+        self._mag.restart(self.init is not None and self.init.mag is not None)
         self._rest_acc = None
         self._att_ok = False  # the heading restarts with the next block
         self._nis.restart("mag")
@@ -653,7 +597,7 @@ class OnlineCalibrator:
     def result(self) -> Calibration:
         """The current estimate as a Calibration (source "online") with 1σ for bias, scale, alpha, xi, and
         the model extensions (``extensions``, the contract's effect keys) with their σ."""
-        meta = {"mag_used": bool(self.mag_enabled), "imu_samples": self._n_imu, "blocks": self._n_blocks,
+        meta = {"mag_used": bool(self._mag.enabled), "imu_samples": self._n_imu, "blocks": self._n_blocks,
                 "quantisation": dict(self._lat.q or {}), "events": list(self.events), "nis": self.nis_summary(),
                 "observability": self.observability_report()}
         return calibration_of(self.x, self.sigma(), self.lay, meta, self.extensions(), self.init)
@@ -673,15 +617,8 @@ class OnlineCalibrator:
     def observability_report(self) -> dict[str, Any]:
         """Which terms the data determined, which not, why, and what motion would determine them
         (:func:`.vehicle.observability_report`), with the motion's coverage and the vehicle detector."""
-        lay = self.lay
-        held = {f"{lay.gauge}.{p}.{a}" for p in lay.gauge_terms for a in AXES} if lay.gauge else set()
-        pub = lay.public()
-        idx = [i for i, _ in pub]
-        return observability_report(["att.x", "att.y", "att.z"] + [nm for _, nm in pub],
-                                    np.concatenate([np.zeros(3), self.sigma()[idx]]),
-                                    np.concatenate([np.ones(3), self.prior_sigma[idx]]),
-                                    self._coverage, self._vehicle, held, lay.gauge, self.config.excited_ratio,
-                                    bool(self.mag_enabled))
+        return report_of(self.lay, self.sigma(), self.prior_sigma, self._coverage, self._vehicle,
+                         self.config.excited_ratio, bool(self._mag.enabled))
 
     def missing_motion(self) -> list[str]:
         """What motion is still needed to excite the parameters that are not yet excited."""
@@ -706,6 +643,7 @@ class OnlineCalibrator:
 
     @classmethod
     def from_state(cls, d: dict[str, Any]) -> OnlineCalibrator:
+        checkpoint.check_schema(d)
         obj = cls(None, UKFConfig.from_dict(d["config"]))
         obj.set_state(d)
         return obj

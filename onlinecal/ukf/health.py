@@ -10,6 +10,7 @@ re-initialises).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -21,12 +22,17 @@ def new_nis_stats() -> dict[str, Any]:
     return {"sum": 0.0, "n": 0, "windows": [], "bad_run": 0, "rejected": 0, "updates": 0}
 
 
+@dataclass
 class NisMonitor:
-    """Windowed mean NIS per sensor (``accel``, ``mag``) against its chi-square band."""
+    """Windowed mean NIS per sensor (``accel``, ``mag``) against its chi-square band: ``window`` updates
+    per window, band of probability 1 − ``band_p``; a divergence after ``windows`` windows in a row above
+    ``factor`` × the band's top. ``stats``: per sensor the running bookkeeping (:func:`new_nis_stats`)."""
 
-    def __init__(self, window: int, band_p: float, factor: float, windows: int) -> None:
-        self.window, self.band_p, self.factor, self.windows = window, band_p, factor, windows
-        self.stats: dict[str, dict[str, Any]] = {s: new_nis_stats() for s in ("accel", "mag")}
+    window: int
+    band_p: float
+    factor: float
+    windows: int
+    stats: dict[str, dict[str, Any]] = field(default_factory=lambda: {s: new_nis_stats() for s in ("accel", "mag")})
 
     def band(self, dof: int = 3) -> tuple[float, float]:
         """Band (lo, hi) of a window's mean NIS (``dof`` per update)."""
@@ -84,14 +90,14 @@ class NisMonitor:
         return out
 
 
+@dataclass
 class EventLog:
     """Events (gaps, saturation, noise, divergence, the mag cold start): the last ``max_events`` kept,
     the count of all in ``total``."""
 
-    def __init__(self, max_events: int) -> None:
-        self.max_events = max_events
-        self.events: list[dict[str, Any]] = []
-        self.total = 0
+    max_events: int
+    events: list[dict[str, Any]] = field(default_factory=list)
+    total: int = 0
 
     def add(self, kind: str, detail: str, t: float) -> None:
         self.total += 1

@@ -74,6 +74,16 @@ def mag_unit_of(x: Array) -> float:
     return float(1.0 / np.mean(x[SENSOR_SLICE["mag"]][3:6]))
 
 
+def raw_field_unit(x: Array, mag_enabled: bool, first_raw: list[list[float]]) -> float:
+    """Raw field magnitude: from the mag scale of the state x once the mag is calibrated, else the median
+    norm of the first raw samples ``first_raw`` (M, 3); 1 without either."""
+    if mag_enabled:
+        return mag_unit_of(x)
+    if first_raw:
+        return float(np.median(np.linalg.norm(np.asarray(first_raw), axis=1)))
+    return 1.0
+
+
 @dataclass
 class NoiseModel:
     """The filter's noise levels. ``specs`` the sensor specs (from the config); ``ratio``, ``high`` the
@@ -149,6 +159,12 @@ class NoiseModel:
         q = cal_rw * dt
         q[ATT] = dt * r * (sigma_gyr / r) ** 2
         return q
+
+    def monitor_all(self, var3: dict[str, float], spec: dict[str, float], q: dict[str, Any], tau_blocks: float,
+                    high: float, low: float) -> list[tuple[str, str]]:
+        """:meth:`monitor` for every sensor (``var3``, ``spec`` per sensor); the events, in sensor order."""
+        evs = [self.monitor(s, var3[s], spec[s], q, tau_blocks, high, low) for s in SENSORS]
+        return [e for e in evs if e is not None]
 
     def monitor(self, sensor: str, var: float, spec: float, q: dict[str, Any], tau_blocks: float,
                 high: float, low: float) -> tuple[str, str] | None:

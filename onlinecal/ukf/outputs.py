@@ -15,6 +15,7 @@ from ..model import PARAMS, RAW_UNITS, SENSORS, Calibration, SensorCalibration
 from .config import EXTENSIONS
 from .layout import AXES, DIP, index
 from .state import StateLayout
+from .vehicle import MotionCoverage, VehicleDetector, observability_report
 
 Array = NDArray[np.float64]
 
@@ -137,3 +138,29 @@ def trace_row(t: float, x: Array, sig: Array, lay: StateLayout, nis_last: dict[s
     for s, v in nis_last.items():
         row[f"nis.{s}"] = v
     return row
+
+
+def report_of(lay: StateLayout, sig: Array, prior_sigma: Array, coverage: MotionCoverage,
+              vehicle: VehicleDetector, excited_ratio: float, mag_enabled: bool) -> dict[str, Any]:
+    """Which public terms of the layout the data determined (posterior σ ``sig`` (n,) against
+    ``prior_sigma`` (n,)), which not, why, and what motion would determine them
+    (:func:`.vehicle.observability_report`); the gauge sensor's held terms are named as such."""
+    held = {f"{lay.gauge}.{p}.{a}" for p in lay.gauge_terms for a in AXES} if lay.gauge else set()
+    pub = lay.public()
+    idx = [i for i, _ in pub]
+    return observability_report(["att.x", "att.y", "att.z"] + [nm for _, nm in pub],
+                                np.concatenate([np.zeros(3), sig[idx]]),
+                                np.concatenate([np.ones(3), prior_sigma[idx]]),
+                                coverage, vehicle, held, lay.gauge, excited_ratio, mag_enabled)
+
+
+def temp_regressor(T: Array, T0: float | None) -> tuple[Array, float | None]:
+    """Regressor T − T0 (°C) (N,) of the temperature extensions for temperatures T (N,) °C, and T0: the
+    given one, else the first finite temperature (None while the log has none; the regressor is then 0)."""
+    if T0 is None:
+        fin = T[np.isfinite(T)]
+        if fin.size:
+            T0 = float(fin[0])
+    if T0 is None:
+        return np.zeros_like(T), None
+    return np.where(np.isfinite(T), T - T0, 0.0), T0

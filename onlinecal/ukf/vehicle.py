@@ -82,6 +82,19 @@ class VehicleDetector:
         self.reason = str(d.get("reason", ""))
 
 
+VEHICLE_NOTE = ": vehicle acceleration modelled from here on"
+
+
+def rest_noise(n: dict[str, float], vehicle: VehicleDetector, noise_high: bool, noise_ratio: float
+               ) -> dict[str, float]:
+    """The per-sample σ ``n`` (per sensor) the rest test judges against: on a vehicle whose accel noise is
+    raised (``noise_high``, by ``noise_ratio`` in variance) the spec's, not the vibration-raised level (a
+    vibrating vehicle is not at rest, and its accelerometer then measures thrust, not gravity)."""
+    if vehicle.active and noise_high:
+        return dict(n, accel=n["accel"] / math.sqrt(noise_ratio))
+    return n
+
+
 def vehicle_accel_var(sigma: float, tau: float, dt_block: float) -> float:
     """Per-axis variance (m/s²)² added to one block's accelerometer update for an unknown vehicle
     acceleration of σ ``sigma`` correlated over ``tau`` s: σ² · max(1, τ/Δt) (one independent measurement

@@ -16,7 +16,7 @@ samples); both are named in the notes.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -33,6 +33,11 @@ NOT_APPLIED = {
 assert tuple(NOT_APPLIED) == NOT_REMOVABLE
 
 
+def _ext(cal: Calibration) -> dict[str, Any]:
+    """``cal.extensions`` as the dict it is at run time (a frozen ``dict`` subclass; typed ``Mapping``)."""
+    return cast(dict[str, Any], cal.extensions)
+
+
 def _applied(ext: dict[str, list[dict[str, Any]]]) -> list[str]:
     return [n for n in ext if n not in NOT_APPLIED]
 
@@ -46,7 +51,7 @@ def prepare(logs: list[ImuData], cal: Calibration | None) -> tuple[list[ImuData]
     """
     if cal is None or not cal.extensions:
         return list(logs), []
-    ext = validate_extensions(cal.extensions)
+    ext = validate_extensions(_ext(cal))
     notes = [NOT_APPLIED[n] for n in ext if n in NOT_APPLIED]
     todo = _applied(ext)
     if not todo:
@@ -54,7 +59,7 @@ def prepare(logs: list[ImuData], cal: Calibration | None) -> tuple[list[ImuData]
     out = []
     for d in logs:
         try:
-            out.append(correct(d, cal.extensions, calibration=cal))
+            out.append(correct(d, _ext(cal), calibration=cal))
         except ValueError as e:
             raise ValueError(f"{d.source or 'log'}: {e}") from None
     notes.insert(0, f"extensions applied to the raw data before the filter: {', '.join(todo)}")
@@ -66,7 +71,7 @@ def check_live(cal: Calibration | None) -> list[str]:
     time_offset (a live block cannot be resampled at shifted instants without holding data back)."""
     if cal is None or not cal.extensions:
         return []
-    ext = validate_extensions(cal.extensions)
+    ext = validate_extensions(_ext(cal))
     for e in ext.get("time_offset", []):
         if e["sensor"] != "mag":
             raise ValueError(f"the {e['sensor']} time_offset extension ({e['seconds']:g} s) cannot be applied to "
@@ -114,6 +119,6 @@ def live_transform(cal: Calibration | None) -> BlockCorrector | None:
     """The per-block correction ``run_live(..., transform=...)`` applies for ``cal``'s extensions, or None when
     none of them changes the data. Raises ValueError as :func:`check_live`."""
     check_live(cal)
-    if cal is None or not _applied(validate_extensions(cal.extensions)):
+    if cal is None or not _applied(validate_extensions(_ext(cal))):
         return None
     return BlockCorrector(cal)

@@ -8,8 +8,9 @@ own motion and noise produce without any effect.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,7 +63,8 @@ class Analysis:
         k = sum(self.problem.blocks[b].stop - self.problem.blocks[b].start for b in self.blocks[key])
         b, C = beta[-k:], cov[-k:, -k:]
         if cand.effect == "bias_drift":
-            return cand.params(b, C, self.designs, self.cal, q=self.q[key], lr=self.q_lr[key])
+            drift = cast(Callable[..., dict[str, Any]], cand.params)  # drift_params: also takes q= and lr=
+            return drift(b, C, self.designs, self.cal, q=self.q[key], lr=self.q_lr[key])
         return cand.params(b, C, self.designs, self.cal)
 
 
@@ -212,7 +214,7 @@ def _finish(designs: list[Design], cal: Calibration, cands: list[Candidate], blo
     return an
 
 
-def channel_mask(P: Problem, sensor: str) -> Array:
+def channel_mask(P: Problem, sensor: str) -> NDArray[np.bool_]:
     names = CHANNELS.get(sensor, CHANNELS["all"])
     ids = [SUBCHANNELS.index(n) for n in names]
     return np.isin(P.ch, ids)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -209,7 +209,7 @@ def drift_prior(K: int, q: Array, dt: float) -> Array:
     Column order knot-major, axis-minor. (3K, 3K)."""
     D = np.eye(K) - np.eye(K, k=-1)
     DD = D.T @ D
-    return np.kron(DD, np.diag(1.0 / (np.maximum(q, 1e-12) ** 2 * dt)))
+    return cast(Array, np.kron(DD, np.diag(1.0 / (np.maximum(q, 1e-12) ** 2 * dt))))  # stub: floating[Any]
 
 
 def drift_params(beta: Array, cov: Array, ds: list[Design], cal: Calibration, q: Array | None = None,
@@ -249,7 +249,7 @@ def candidates(has_mag: bool, has_temp: bool) -> list[Candidate]:
 class Saturated:
     sensor: str
     limit: float
-    mask: Array  # (N,) any axis at the rail
+    mask: NDArray[np.bool_]  # (N,) any axis at the rail
     n_rail: int
     longest_run: int
     per_axis: list[int]
@@ -264,7 +264,7 @@ def find_saturation(raw: Array, sensor: str, min_samples: int = 10, min_run: int
         return None
     top = float(np.nanmax(a))
     at = a >= top * (1 - 1e-9)
-    anyax = at.any(axis=1)
+    anyax = cast(NDArray[np.bool_], at.any(axis=1))  # 2-D → an array (stub: bool | array)
     n = int(anyax.sum())
     if n < min_samples:
         return None
@@ -291,7 +291,7 @@ def _rate_map(v: Array, t: Array, w_raw: Array, rate: float) -> Array | None:
     k = max(3, int(round(0.1 * rate)))
     from .motion import smooth
 
-    ok = np.isfinite(v).all(axis=1)
+    ok = cast(NDArray[np.bool_], np.isfinite(v).all(axis=1))  # 2-D → an array (stub: bool | array)
     if ok.sum() < 100:
         return None
     vs = smooth(np.where(ok[:, None], v, 0.0), k)
@@ -326,10 +326,10 @@ def find_axis_sign(t: Array, raw_g: Array, gyro_bias: Array, a: Array | None, m:
     not usable — an accelerometer that sees linear acceleration is no world-fixed vector).
     """
     w = raw_g - gyro_bias
-    maps = {"accel": _rate_map(a, t, w, rate)} if a is not None else {}
+    fitted = {"accel": _rate_map(a, t, w, rate)} if a is not None else {}
     if m is not None:
-        maps["mag"] = _rate_map(m, t, w, rate)
-    maps = {k: v for k, v in maps.items() if v is not None}
+        fitted["mag"] = _rate_map(m, t, w, rate)
+    maps: dict[str, Array] = {k: v for k, v in fitted.items() if v is not None}
     if not maps:
         return None
     dets = {k: float(np.sign(np.linalg.det(G))) for k, G in maps.items()}

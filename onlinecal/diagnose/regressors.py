@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +29,7 @@ from numpy.typing import NDArray
 from .motion import Session, integrate_attitude, smooth
 
 Array = NDArray[np.float64]
+Mask = NDArray[np.bool_]
 
 SUBCHANNELS = ("g_rest_x", "g_rest_y", "g_rest_z", "a_norm", "ka_x", "ka_y", "ka_z",
                "km_x", "km_y", "km_z", "m_norm", "dip")
@@ -49,7 +51,7 @@ def _cumtrapz(y: Array, t: Array) -> Array:
 class _Blocks:
     L: int
     K: int
-    valid: Array  # (K,) bool: no gap inside
+    valid: Mask  # (K,) no gap inside
     t: Array  # (K,) block mid time
 
 
@@ -57,7 +59,8 @@ def _blocks(s: Session) -> _Blocks:
     L = max(4, int(round(BLOCK_S * s.rate))) if np.isfinite(s.rate) else 4
     K = s.n // L
     dt = np.diff(s.t)
-    gap = np.concatenate([dt > 3.0 / s.rate, [False]])[: K * L].reshape(K, L).any(axis=1) if K else np.zeros(0, bool)
+    gap = (cast(Mask, np.concatenate([dt > 3.0 / s.rate, [False]])[: K * L].reshape(K, L).any(axis=1)) if K
+           else np.zeros(0, bool))
     tm = s.t[: K * L].reshape(K, L).mean(axis=1) if K else np.zeros(0)
     return _Blocks(L, K, ~gap, tm)
 
@@ -89,25 +92,27 @@ class Design:
     """
 
     def __init__(self, s: Session, g: float, sid: int = 0, exclude: Array | None = None) -> None:
+        # exclude: (N,) bool at run time (censored samples); core's list of them is typed Array
+        mask = cast(Mask | None, exclude)
         self.s = s
         self.g = g
         self.sid = sid
         self.b = _blocks(s)
         self.chunks = _rest_chunks(s)
         b = self.b
-        if exclude is not None and exclude.any():
+        if mask is not None and mask.any():
             # censored samples (clipped at a rail): no block or rest chunk that holds one is a residual row
-            ex = exclude[: b.K * b.L].reshape(b.K, b.L).any(axis=1)
+            ex = cast(Mask, mask[: b.K * b.L].reshape(b.K, b.L).any(axis=1))
             b.valid = b.valid & ~ex
-            self.chunks = [c for c in self.chunks if not exclude[c[0]:c[1]].any()]
+            self.chunks = [c for c in self.chunks if not mask[c[0]:c[1]].any()]
         a, w = s.a, s.w
         an = np.linalg.norm(a, axis=1)
-        self.clean = clean_signals(s, g, exclude=exclude)
+        self.clean = clean_signals(s, g, exclude=mask)
         ac = self.clean["a"]
         self.an = np.linalg.norm(ac, axis=1)
         self.ahat = ac / np.maximum(self.an, 1e-9)[:, None]
         ys, chs, ts = [], [], []
-        self._masks: dict[str, Array] = {}
+        self._masks: dict[str, Mask] = {}
 
         def add(name: str, val: Array, tt: Array) -> None:
             ok = np.isfinite(val)
@@ -139,6 +144,7 @@ class Design:
             add(f"ka_{'xyz'[k]}", du[:, k], tp)
         # km, m_norm, dip
         if s.has_mag:
+            assert s.m is not None  # has_mag
             m = s.m
             mn = np.linalg.norm(m, axis=1)
             mc = self.clean["m"]
@@ -148,7 +154,7 @@ class Design:
             mz = np.where(np.isfinite(m), m, 0.0)
             um = mz - _cumtrapz(np.cross(mz, w), s.t)
             dum = np.diff(_bmean(um, b), axis=0)
-            finite_b = np.isfinite(_bmean(m, b)).all(axis=1)
+            finite_b = cast(Mask, np.isfinite(_bmean(m, b)).all(axis=1))
             okm = self.pair_ok & finite_b[1:] & finite_b[:-1]
             dum[~okm] = np.nan
             for k in range(3):
@@ -280,7 +286,7 @@ class Design:
 ColumnFn = Callable[[Design], Array]
 
 
-def clean_signals(s: Session, g: float, window_s: float = 10.0, exclude: Array | None = None) -> dict[str, Array]:
+def clean_signals(s: Session, g: float, window_s: float = 10.0, exclude: Mask | None = None) -> dict[str, Array]:
     """Noise-free stand-ins for ω, a, m, ω̇ to build regressors from (a regressor made of the same noisy
     samples as the residual would fit the noise: errors-in-variables).
 
@@ -295,7 +301,7 @@ def clean_signals(s: Session, g: float, window_s: float = 10.0, exclude: Array |
     width = max(3, int(round(window_s * s.rate)))
 
     def steady(v: Array, fill: bool) -> Array:
-        ok = np.isfinite(v).all(axis=1)
+        ok = cast(Mask, np.isfinite(v).all(axis=1))
         if exclude is not None:
             ok &= ~exclude
         vz = np.where(ok[:, None], v, 0.0)
@@ -317,6 +323,7 @@ def clean_signals(s: Session, g: float, window_s: float = 10.0, exclude: Array |
     a *= g / np.maximum(np.linalg.norm(a, axis=1), 1e-9)[:, None]
     out = {"w": w, "a": a, "wdot": np.gradient(smooth(w, max(3, int(round(0.1 * s.rate)))), s.t, axis=0), "R": R}
     if s.has_mag:
+        assert s.m is not None  # has_mag
         m = steady(s.m, False)
         out["m"] = m / np.maximum(np.linalg.norm(m, axis=1), 1e-9)[:, None]
     return out
@@ -330,16 +337,16 @@ def nuisance(d: Design) -> Array:
     blocks = []
     c = d.clean
     sensors = [("g", c["w"]), ("a", c["a"])] + ([("m", c["m"])] if d.mhat is not None else [])
-    for name, c in sensors:
-        cz = np.where(np.isfinite(c), c, 0.0)
+    for name, cv in sensors:
+        cz = np.where(np.isfinite(cv), cv, 0.0)
         cols = np.zeros((12, N, 3))
         for i in range(3):
             cols[i, :, i] = 1.0
             for j in range(3):
                 cols[3 + 3 * i + j, :, i] = cz[:, j]
-        kw = {"dg": None, "da": None, "dm": None}
+        kw: dict[str, Array | None] = {"dg": None, "da": None, "dm": None}
         kw["d" + name] = cols
-        blocks.append(d.response(**kw))
+        blocks.append(d.response(dg=kw["dg"], da=kw["da"], dm=kw["dm"]))
     if d.mhat is not None:
         blocks.append(d.response(dip_const=np.ones(1)))
     else:

@@ -151,6 +151,6 @@ def write_report(diag: Diagnosis, out: Path) -> Path:
     notes = diag.baseline.get("notes", []) + diag.baseline.get("batch_warnings", [])
     if notes:
         L += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
-    p = out / "report.md"
-    p.write_text("\n".join(L))
-    return p
+    path = out / "report.md"
+    path.write_text("\n".join(L))
+    return path

@@ -86,7 +86,10 @@ class Effect:
     name: ClassVar[str] = ""
     stage: ClassVar[int] = 2
     sensor: str
-    axis: str | None
+
+    if TYPE_CHECKING:  # a dataclass field in most effects, a read-only property (None) in the others
+        @property
+        def axis(self) -> str | None: ...
 
     def params(self) -> dict[str, Any]:
         """The spec's parameter keys (everything but sensor and axis) and their values."""
@@ -275,6 +278,7 @@ class TimeOffset(Effect):
 
     def apply(self, ctx: SimContext) -> None:
         t = ctx.t_mag if self.sensor == "mag" else ctx.t_imu
+        assert ctx.trajectory is not None, "simulate() sets the trajectory before the effects"
         ctx.motion[self.sensor] = ctx.trajectory.evaluate(t - self.seconds)
         ctx.remodel(self.sensor)
 
@@ -393,6 +397,7 @@ class LeverArm(Effect):
     def apply(self, ctx: SimContext) -> None:
         m = ctx.motion["accel"]
         h = 1e-5
+        assert ctx.trajectory is not None, "simulate() sets the trajectory before the effects"
         w_dot = (ctx.trajectory.evaluate(m.t + h).omega - ctx.trajectory.evaluate(m.t - h).omega) / (2 * h)
         ctx.inputs["accel"] = m.f + self.acceleration(m.omega, w_dot, self.r)
         ctx.remodel("accel")

@@ -75,7 +75,7 @@ def _plots(diag: Diagnosis, out: Path) -> list[str]:
 
 def _fmt(v: object) -> str:
     if isinstance(v, float):
-        return f"{v:.4g}"
+        return f"{v:.4g}" if np.isfinite(v) else "n/a"  # not measured for this finding (never a bare nan)
     if isinstance(v, list):
         return "[" + ", ".join(_fmt(x) for x in v) + "]"
     if isinstance(v, dict):
@@ -118,7 +118,8 @@ def write_report(diag: Diagnosis, out: Path) -> Path:
     files = _plots(diag, out)
     L = [f"# Diagnosis: {', '.join(diag.sources)}", "", f"**Verdict: {diag.verdict}**", ""]
     L += ["## Findings (held-out log-likelihood gain, nats; bar = max(BIC penalty, re-simulation + margin))", "",
-          "| effect | sensor | axis | score | bar | significant | parameters | held-out RMS before → after |",
+          "| effect | sensor | axis | score | bar | significant | parameters "
+          "| held-out residual RMS before → after (1 = noise) |",
           "|---|---|---|---|---|---|---|---|"]
     for f in diag.findings:
         p = {k: v for k, v in f.parameters.items() if k not in ("per_axis_sigma", "sigma", "per_axis_lr")}

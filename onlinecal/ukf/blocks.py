@@ -187,7 +187,9 @@ def block_stats(t: Array, w: Array, a: Array, tm: Array, m: Array, bounds: list[
     var3["mag"] = third_diff_var(m[m0 : int(mhi[-1])], mt, mseg, nb)
     # interpolation of each mag sample between the IMU ticks around it (index into t_ext)
     jm = np.clip(np.searchsorted(t_ext, mt, side="left"), lo[mseg] + 1, hi[mseg])
-    frac = np.clip((mt - t_ext[jm - 1]) / (t_ext[jm] - t_ext[jm - 1]), 0.0, 1.0)
+    den = t_ext[jm] - t_ext[jm - 1]
+    # two IMU ticks on one stamp: the mag sample sits on the later one (0/0 would put NaN in the weights)
+    frac = np.clip(np.divide(mt - t_ext[jm - 1], den, out=np.ones_like(den), where=den > 0), 0.0, 1.0)
     return Blocks(lo, hi, mlo, mhi, w_ext, dt, w_mean, w_std, a_mean, a_std, m_mean, m_std, var3,
                   jerk, 3 * np.maximum(cnt - 1, 0), np.maximum.reduceat(np.abs(ww), lo, axis=0),
                   np.maximum.reduceat(np.abs(aa), lo, axis=0), jm - lo[mseg], frac)

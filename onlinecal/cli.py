@@ -284,7 +284,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
     from .fleet import replay_chunked
     from .progress import bar
-    from .report import truth_table, write_report
+    from .report import write_report
 
     if a.init not in ("batch", "none"):
         _load_cal(a.init)  # a bad --init file is refused before the logs are read
@@ -331,12 +331,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
         with stages(["report"] * 9, desc="report") as st:
             written = write_report(report, logs, "replay", batch=batch, online=res,
                                    init=None if batch is not None else init, progress=st)
-    health = online_health(res, logs)
-    print(truth_table(None, init, res.calibration, labels=("init" if batch is None else "batch", "online")),
-          file=_human(a.json))
-    _print_observability(res.calibration, _human(a.json))
-    _wrote(res.calibration, health, a.json, report, written)
-    return _show_health(health, "online calibration")
+    return _replay_result(a, res, init, "init" if batch is None else "batch", logs, report, written)
 
 
 def _replay_streamed(a: argparse.Namespace) -> int | None:
@@ -345,7 +340,6 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
     calibration carries extensions that need whole logs (the caller then reads them whole)."""
     from .io import open_log
     from .progress import bar
-    from .report import truth_table
     from .ukf.replay import replay_stream
 
     init = None if a.init == "none" else _load_cal(a.init)
@@ -363,10 +357,19 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
     for r in readers:
         _warn([f"{r.path}: {w}" for w in r.warnings])
     _warn(res.warnings)
-    health = online_health(res)
-    print(truth_table(None, init, res.calibration, labels=("init", "online")), file=_human(a.json))
+    return _replay_result(a, res, init, "init", None, None, [])
+
+
+def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs: Sequence[Any] | None,
+                   report: Any, written: list[str]) -> int:
+    """The end of every ``replay`` (whole logs or streamed): health verdict, start · online table, what the
+    data did not determine, the files written; the exit status by the verdict."""
+    from .report import truth_table
+
+    health = online_health(res, logs)
+    print(truth_table(None, start, res.calibration, labels=(label, "online")), file=_human(a.json))
     _print_observability(res.calibration, _human(a.json))
-    _wrote(res.calibration, health, a.json, None, [])
+    _wrote(res.calibration, health, a.json, report, written)
     return _show_health(health, "online calibration")
 
 

@@ -506,6 +506,12 @@ def _diag_or(d: dict[str, float], names: Sequence[str], default: float, zero_is_
     return v
 
 
+def _symmetric(dia: Array, odi: Array) -> Array:
+    """The firmware's symmetric soft-iron matrix from its diagonal (DIA/SCALE) and off-diagonal (ODI/ODIAG:
+    xy, xz, yz) parameters — the same layout in ArduPilot and PX4 (module doc)."""
+    return np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+
+
 def firmware_correction(onboard: dict[str, float], fmt: str, mag_unit: str = "gauss") -> dict[str, Any]:
     """The correction the firmware applied with ``onboard`` parameters, per sensor, as
     ``(f, F)`` with ``corrected = F (raw − f)`` in the calibration's raw units (see the module doc for each
@@ -525,7 +531,7 @@ def firmware_correction(onboard: dict[str, float], fmt: str, mag_unit: str = "ga
             ofs = _diag_or(onboard, [f"COMPASS_OFS_{a}" for a in "XYZ"], 0.0)
             dia = _diag_or(onboard, [f"COMPASS_DIA_{a}" for a in "XYZ"], 1.0, zero_is_default=True)
             odi = _diag_or(onboard, [f"COMPASS_ODI_{a}" for a in "XYZ"], 0.0)
-            W = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+            W = _symmetric(dia, odi)
             cs = float(onboard.get("COMPASS_SCALE", 1.0)) or 1.0
             out["mag"] = SensorCalibration(-ofs / k, cs * W)  # W (raw·k + OFS) / k = W (raw − (−OFS/k))
     else:
@@ -539,7 +545,7 @@ def firmware_correction(onboard: dict[str, float], fmt: str, mag_unit: str = "ga
             off = _diag_or(onboard, [f"CAL_MAG0_{a}OFF" for a in "XYZ"], 0.0)
             dia = _diag_or(onboard, [f"CAL_MAG0_{a}SCALE" for a in "XYZ"], 1.0, zero_is_default=True)
             odi = _diag_or(onboard, [f"CAL_MAG0_{a}ODIAG" for a in "XYZ"], 0.0)
-            W = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+            W = _symmetric(dia, odi)
             out["mag"] = SensorCalibration(off / k, W)
     return out
 

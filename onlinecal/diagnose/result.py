@@ -7,8 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from ..files import sanitize
 from ..model import Calibration
 
 SCHEMA = "onlinecal.diagnosis/1"
@@ -18,22 +17,7 @@ OPT_GAIN_KEYS = ("gain_spread",)
 UKF_GAIN_KEYS = ("ukf_nis_before", "ukf_nis_after", "ukf_outside_before", "ukf_outside_after")
 
 
-def _plain(x: Any) -> Any:
-    """JSON-safe: numpy scalars/arrays to Python, NaN/inf to None."""
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return v if np.isfinite(v) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
+_plain = sanitize  # one JSON sanitiser for every output (onlinecal.files)
 
 
 @dataclass

@@ -32,7 +32,7 @@ from scipy.stats import chi2
 
 from ..io.base import ImuData
 from ..model import SENSORS, Calibration
-from . import checkpoint
+from . import checkpoint, divergence
 from .attitude_init import attitude_start, fold_attitude
 from .attitude_init import ellipsoid_gn as ellipsoid_gn  # re-exported (older imports)
 from .blocks import Blocks, HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer, block_stats, cut_blocks
@@ -114,6 +114,7 @@ class OnlineCalibrator:
         if c.vehicle == "vehicle":
             self._vehicle.active, self._vehicle.since, self._vehicle.reason = True, 0.0, "configured"
         self._coverage = MotionCoverage()
+        self._div = divergence.DivergenceLog()  # a step whose update diverged does not commit its posterior
         self._reset_calibration()
 
     def _configure(self) -> None:
@@ -470,8 +471,10 @@ class OnlineCalibrator:
             self._commit(x_pred, P_pred, tl)
             return
         # not at rest (rests go to _rest_step): an accel outlier is motion the model lacks, dropped
+        k = self._div.count
         res = self._update(Y, x_pred, P_pred, meas, False, tl, damp=self.config.update_damping)
-        self._commit(res.x, res.P, tl)
+        if self._div.count == k:  # else the update declared a divergence: the restarted state stands
+            self._commit(res.x, res.P, tl)
 
     def _rest_step(self, B: Blocks, b: int, t: Array, T: Array, n: dict[str, float], held: dict[str, bool],
                    use_mag: bool, clip: dict[str, bool]) -> None:
@@ -490,8 +493,11 @@ class OnlineCalibrator:
             acc = self._rest_acc = RestAccumulator.start(self.x, self.P, self.R_nom, held, use_mag)
         dt_blk = float(t[-1] - self._t_last)
         acc.q += self._process_noise(dt_blk, n["gyro"])
+        k = self._div.count
         for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
             self._nis_record(s, nis, tl)
+        if self._div.count != k:
+            return  # a divergence: the restarted state stands (not the rest's first state)
         acc.add(B, b, n, not clip["accel"], use_mag, self._temp_reg(T) if self._has_temp() else None)
         if acc.na:
             self._coverage.add_rest(self._calibrated("accel", acc.sa / acc.na), dt_blk)
@@ -509,7 +515,8 @@ class OnlineCalibrator:
                                  float(np.mean(self.x[index("gyro", "scale")])))
         res = self._update(X - x0, x0, P0, meas, True, tl, record=first, post=True)
         acc.post = res.post
-        self._commit(res.x, res.P, tl)  # a divergence there also ends the running rest (_reset_calibration)
+        if self._div.count == k:  # a divergence in the update also ended the running rest
+            self._commit(res.x, res.P, tl)
 
     def _end_rest(self) -> None:
         """Close the running rest (:meth:`_rest_step`): its last state stays."""
@@ -526,6 +533,10 @@ class OnlineCalibrator:
         res = update(Y, x_pred, P_pred, meas, self._Wm, self._Wc, Gating(self._gates, static),
                      self.lay.consider, damp, post)
         for s, nis, status in res.nis:
+            fail = divergence.nis_failure(nis)
+            if fail is not None:  # passes both the gate and the windows otherwise
+                self._diverged(f"{s}: {fail}", t)
+                return res
             if status == "drop":
                 # motion the model has no term for (linear acceleration): an outlier, not a statistic of
                 # the filter's consistency — dropped and counted, kept out of the NIS windows
@@ -565,21 +576,29 @@ class OnlineCalibrator:
             self._diverged(why, t, sensor)
 
     def _diverged(self, why: str, t: float, sensor: str | None = None) -> None:
-        """Re-initialise: only the magnetometer (its terms and the dip, from the init or a new cold fit)
-        when its NIS alone ran away, otherwise every calibration state from the init calibration."""
-        if sensor != "mag":
-            self._event("divergence", why + "; re-initialised from the init calibration", t)
+        """Restart (:func:`.divergence.plan_restart`: a widened prior, the cold prior on a second divergence
+        soon after): the magnetometer and gyro terms (:func:`.divergence.restart_indices`) when the
+        magnetometer's NIS alone ran away, otherwise every calibration state."""
+        mag_only, mag_on = divergence.mag_alone(sensor, self._nis.stats["accel"]), bool(self._mag.enabled)
+        sl = divergence.restart_indices(self.lay.consider, mag_on or mag_only, mag_only)
+        wins = [w for s in (("mag",) if mag_only else ("accel", "mag")) for w in self._nis.stats[s]["windows"]]
+        x_cold, sig_cold = divergence.cold_prior(self.config, self.x)
+        r = divergence.plan_restart(self._div, t, self.x[sl], self.prior_x[sl], self.prior_sigma[sl], x_cold[sl],
+                                    sig_cold[sl], wins, self._nis.band()[1], self.config.divergence_factor,
+                                    "NIS window" not in why, (sl < SENSOR_SLICE["mag"].start))
+        self._event("divergence", f"{why}; {r.detail}", t)
+        divergence.announce(t, why, r, mag_only)
+        if not mag_only:
             self._reset_calibration()
-            return
-        self._event("divergence", why + "; magnetometer re-initialised", t)
-        x0, sig0 = self._prior()
-        sl = np.r_[np.arange(SENSOR_SLICE["mag"].start, SENSOR_SLICE["mag"].stop), DIP]
-        reset_states(self.x, self.P, sl, x0[sl], np.diag(sig0[sl] ** 2))
-        self.prior_sigma[sl], self.prior_x[sl] = sig0[sl], x0[sl]
-        self._mag.restart(self.init is not None and self.init.mag is not None)
+        reset_states(self.x, self.P, sl, r.x, np.diag(r.sigma**2))
+        self.prior_sigma[sl], self.prior_x[sl] = r.sigma, r.x
+        # the magnetometer stays calibrated unless the restart is cold: then it is fitted from raw samples again
+        self._mag.restart(mag_on and r.kind != "cold")
         self._rest_acc = None
-        self._att_ok = False  # the heading restarts with the next block
-        self._nis.restart("mag")
+        self._att_ok = False  # the attitude (and heading) restarts with the next block
+        if mag_only:
+            self._nis.restart("mag")
+            self._nis.restart("accel")  # its run of bad windows (if any) saw the magnetometer's old state
 
     def _event(self, kind: str, detail: str, t: float) -> None:
         self._log.add(kind, detail, t)

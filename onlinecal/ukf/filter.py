@@ -42,6 +42,7 @@ from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
 from .health import EventLog, NisMonitor
 from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
 from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, index
+from .magdisturb import MagDisturbanceGate
 from .magstart import MagStart, mag_prior_from_raw
 from .measurements import (
     AccelModel,
@@ -115,6 +116,7 @@ class OnlineCalibrator:
             self._vehicle.active, self._vehicle.since, self._vehicle.reason = True, 0.0, "configured"
         self._coverage = MotionCoverage()
         self._div = divergence.DivergenceLog()  # a step whose update diverged does not commit its posterior
+        self._magd = MagDisturbanceGate()  # a stretch of disturbed field is left out of the mag update
         self._reset_calibration()
 
     def _configure(self) -> None:
@@ -377,6 +379,7 @@ class OnlineCalibrator:
         t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
         tl = float(t[-1])
         use_mag, mag_changed = self._mag_block(tm_all[ml:mh], m_all[ml:mh], tl)
+        use_mag = self._magd.gate(use_mag, self.x, self.sigma(), m_all[ml:mh], a, tl, c.gravity, self._event)
         spec = self._spec_noise()
         q = self._lat.q or {}
         for kind, detail in self._noise.monitor_all({s: float(B.var3[s][b]) for s in SENSORS}, spec, q,

@@ -260,7 +260,7 @@ def test_divergence_reinitialises(paper1):
     assert np.all(np.linalg.eigvalsh(cal.P) > 0)
     # a mag that suddenly reads a different field: sustained NIS far above the band
     cal2 = OnlineCalibrator(batch)
-    bad = d.slice_imu(3000, 9000)
+    bad = d.slice_imu(3000, 20000)  # sustained: beyond the disturbance gate's 45 s (magdisturb.MAX_S)
     bad.mag = bad.mag * 1.5
     cal2.feed(d.slice_imu(0, 3000))
     cal2.feed(bad)

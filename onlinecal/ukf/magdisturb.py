@@ -17,7 +17,14 @@ ended 9–266σ off. :class:`MagDisturbanceGate` judges every filter block's mea
 
 Either enters a disturbance; it ends only after ``CLEAR_S`` s of log time in which neither test fired
 (hysteresis: inside a disturbance the norm passes through 1 as the body turns, and those blocks are as
-wrong as the others). While it lasts the magnetometer is not used (the gyro carries the heading). Each
+wrong as the others). While it lasts the magnetometer is not used (the gyro carries the heading).
+
+A disturbance is a *change* from a field that agreed: the gate is armed only after ``CLEAR_S`` s of
+agreement, so a magnetometer whose calibration never agreed (a wrong start) is left to the filter's NIS
+and its divergence restart (:mod:`.divergence`) instead of being silenced with its wrong terms and small
+σ. For the same reason a disagreement that lasts beyond ``MAX_S`` s (a lasting change: the unit moved
+near iron, a magnetometer re-mounted) ends the exclusion: the magnetometer is used again, and the gate
+re-arms once the field agrees again (after the filter has re-learned it). Each
 stretch is one ``mag_disturbance`` event at its start and one at its end (with its span and the blocks
 left out; the events go into the result's ``meta.events``) and one warning (the command line's stderr
 line).
@@ -42,7 +49,8 @@ NORM_K = 5.0  # × σ of the norm the calibration's uncertainty allows
 DIP_MIN_DEG = 5.0  # deg: the least dip deviation that counts
 DIP_K = 4.0  # × σ of the dip state
 STATIC_G = 0.02  # a block whose mean specific force is within 2 % of g: quasi-static, the accel is gravity
-CLEAR_S = 3.0  # s of agreement that end a disturbance
+CLEAR_S = 3.0  # s of agreement that end a disturbance (and that arm the gate)
+MAX_S = 45.0  # s: a disagreement lasting longer is no passing disturbance; the mag is used (and judged) again
 
 
 class MagDisturbanceWarning(UserWarning):
@@ -78,13 +86,16 @@ def dip_of(h: Array, f: Array) -> float:
 class MagDisturbanceGate:
     """Whether the magnetometer's block is used (see the module doc). ``active``: inside a disturbance
     since log time ``since`` s; ``last_bad``: the last block that disagreed; ``excluded``: blocks left out
-    in the current stretch; ``stretches``: how many so far."""
+    in the current stretch; ``stretches``: how many so far; ``armed``: the field has agreed for ``CLEAR_S``
+    s (since the start or since a lasting disagreement), from ``agreed_since`` s."""
 
     active: bool = False
     since: float = math.nan
     last_bad: float = -math.inf
     excluded: int = 0
     stretches: int = 0
+    armed: bool = False
+    agreed_since: float = math.nan
 
     def judge(self, x: Array, sig: Array, m_raw: Array, a_raw: Array, gravity: float) -> str | None:
         """Why the block's field disagrees with the model, or None. m_raw (N, 3), a_raw (K, 3) raw samples
@@ -109,19 +120,31 @@ class MagDisturbanceGate:
         if not use_mag or m_raw.shape[0] == 0:
             return use_mag and not self.active
         why = self.judge(x, sig, m_raw, a_raw, gravity)
-        if why is not None:
+        if why is None:
+            if math.isnan(self.agreed_since):
+                self.agreed_since = t
+            if t - self.agreed_since >= CLEAR_S:
+                self.armed = True
+            if self.active and t - self.last_bad >= CLEAR_S:
+                self.active = False
+                event("mag_disturbance", f"magnetometer disturbance over: t = {self.since:.1f}–{self.last_bad:.1f} "
+                                         f"s, {self.excluded} filter blocks of magnetometer data left out", t)
+        else:
+            self.agreed_since = math.nan
             self.last_bad = t
-            if not self.active:
+            if self.active and t - self.since > MAX_S:
+                self.active, self.armed = False, False
+                event("mag_disturbance", f"magnetometer disturbance not passing: the field has disagreed with the "
+                                         f"model since t = {self.since:.1f} s ({why}); the magnetometer is used "
+                                         "again and its calibration judged by the filter (a lasting change, or "
+                                         f"its calibration wrong); {self.excluded} filter blocks were left out", t)
+            elif not self.active and self.armed:
                 self.active, self.since, self.excluded = True, t, 0
                 self.stretches += 1
                 text = (f"magnetometer disturbance from t = {t:.1f} s ({why}): its updates are left out "
                         f"until the field agrees with the model again for {CLEAR_S:.0f} s")
                 event("mag_disturbance", text, t)
                 warnings.warn(text, MagDisturbanceWarning, stacklevel=3)
-        elif self.active and t - self.last_bad >= CLEAR_S:
-            self.active = False
-            event("mag_disturbance", f"magnetometer disturbance over: t = {self.since:.1f}–{self.last_bad:.1f} s, "
-                                     f"{self.excluded} filter blocks of magnetometer data left out", t)
         if self.active:
             self.excluded += 1
             return False

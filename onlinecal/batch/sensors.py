@@ -189,6 +189,39 @@ def dip_outliers(segs: list[Segmentation], acc: SensorCalibration, mag: SensorCa
     return n, lines
 
 
+TRIM_KEEP = 80.0  # percent of the samples (by residual) the trimmed refit keeps each round
+TRIM_BENT = 3.0  # the full fit is bent by a minority when its residual MAD is this many times the trimmed fit's
+
+
+def _trimmed_fit(x: Array, use: NDArray[np.bool_], fit: NormFit, floor: float = 0.02) -> NormFit | None:
+    """A fit of eq. 17 on the majority of the samples, when a minority bent the full one; else None.
+
+    A passing disturbance (0.5 G for 30 s: a tenth of a paper session) puts samples far off the sphere,
+    where the coverage bins (:func:`sphere_bin_weights`) are empty and give them a high weight: the full
+    fit bends towards them until their residuals no longer stand out against the (now large) MAD, and
+    nothing is excluded. Refitted 4 times on the ``TRIM_KEEP`` % best-fitting samples, the fit returns to
+    the majority's sphere; it is taken when the full fit's residual MAD is ``TRIM_BENT`` × the trimmed
+    one's (a clean log: about 1.3×). Skipped when the full fit's MAD is already below ``floor`` (the least
+    residual ever called an outlier). x (N, 3) raw, ``use`` (N,) the samples of the shape fit."""
+    def resid(f: NormFit) -> Array:
+        out: Array = np.linalg.norm((x - f.o) @ f.M.T, axis=1) - 1.0
+        return out
+
+    def mad(r: Array) -> float:
+        return 1.4826 * float(np.median(np.abs(r - np.median(r))))
+
+    mad_all = mad(resid(fit)[use])
+    if mad_all < floor or use.sum() < 100:
+        return None
+    f, keep = fit, use.copy()
+    for _ in range(4):
+        r = np.abs(resid(f))
+        keep = use & (r <= float(np.percentile(r[keep], TRIM_KEEP)))
+        w = sphere_bin_weights((x[keep] - f.o) @ f.M.T, per_bin=30)
+        f = fit_norm_lm(x[keep], 1.0, f.o, f.M, weights=w)
+    return f if mad_all > TRIM_BENT * mad(resid(f)[keep]) else None
+
+
 def fit_magnetometer(
     segs: list[Segmentation], rng: np.random.Generator, field_tol: float = 0.05,
 ) -> tuple[SensorCalibration, StepReport]:
@@ -250,6 +283,10 @@ def fit_magnetometer(
         excluded.append(f"{with_mag[worst[0]].data.source}: field {100 * (worst[1] - 1):+.0f} % against the other "
                         "files (another place or a lasting disturbance); left out of the magnetometer fit")
     rep.warnings += [f"mag: {e}" for e in excluded]
+    trimmed = None if diverged else _trimmed_fit(x, use, fit)
+    if trimmed is not None:
+        # a minority (a passing disturbance) bent the fit: the majority's fit finds it, below
+        fit = trimmed
     if diverged:
         rep.figures["degenerate"] = True
         rep.warnings.append("mag: the field was seen from a band of directions only (no full tumble): the geometric "

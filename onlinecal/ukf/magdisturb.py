@@ -19,15 +19,17 @@ Either enters a disturbance; it ends only after ``CLEAR_S`` s of log time in whi
 (hysteresis: inside a disturbance the norm passes through 1 as the body turns, and those blocks are as
 wrong as the others). While it lasts the magnetometer is not used (the gyro carries the heading).
 
-A disturbance is a *change* from a field that agreed: the gate is armed only after ``CLEAR_S`` s of
-agreement, so a magnetometer whose calibration never agreed (a wrong start) is left to the filter's NIS
-and its divergence restart (:mod:`.divergence`) instead of being silenced with its wrong terms and small
-σ. For the same reason a disagreement that lasts beyond ``MAX_S`` s (a lasting change: the unit moved
-near iron, a magnetometer re-mounted) ends the exclusion: the magnetometer is used again, and the gate
-re-arms once the field agrees again (after the filter has re-learned it). Each
-stretch is one ``mag_disturbance`` event at its start and one at its end (with its span and the blocks
-left out; the events go into the result's ``meta.events``) and one warning (the command line's stderr
-line).
+A disturbance is a *change* from a field that agreed with a filter in order: the gate is armed only after
+``CLEAR_S`` s of agreement and while the latest NIS window of both the accelerometer and the magnetometer
+is in order (:func:`nis_in_order`; a window mean within ``NIS_ORDER`` × the band's top). A magnetometer
+whose calibration never agreed (a wrong start), or a filter whose state is going wrong (a wrong gyro scale
+bends the magnetometer terms before the NIS declares a divergence), is left to the filter's NIS and its
+divergence restart (:mod:`.divergence`) instead of being silenced with its wrong terms and small σ.
+For the same reason a disagreement that lasts beyond ``MAX_S`` s (a lasting change: the unit moved near
+iron, a magnetometer re-mounted) ends the exclusion: the magnetometer is used again, and the gate re-arms
+once the field agrees again (after the filter has re-learned it). Each stretch is one ``mag_disturbance``
+event at its start and one at its end (with its span and the blocks left out; the events go into the
+result's ``meta.events``) and one warning (the command line's stderr line).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,12 +47,13 @@ from .layout import DIP, SENSOR_SLICE, correction
 
 Array = NDArray[np.float64]
 
-NORM_MIN = 0.06  # relative field norm: the least deviation that counts (5 % soft-iron residue is common)
+NORM_MIN = 0.15  # relative field norm: the least deviation that counts (a drifting calibration is the filter's)
 NORM_K = 5.0  # × σ of the norm the calibration's uncertainty allows
-DIP_MIN_DEG = 5.0  # deg: the least dip deviation that counts
+DIP_MIN_DEG = 10.0  # deg: the least dip deviation that counts
 DIP_K = 4.0  # × σ of the dip state
 STATIC_G = 0.02  # a block whose mean specific force is within 2 % of g: quasi-static, the accel is gravity
 CLEAR_S = 3.0  # s of agreement that end a disturbance (and that arm the gate)
+NIS_ORDER = 2.0  # × the NIS band's top: the latest window of each sensor at most this for the gate to arm
 MAX_S = 45.0  # s: a disagreement lasting longer is no passing disturbance; the mag is used (and judged) again
 
 
@@ -67,6 +71,18 @@ def norm_sigma(x: Array, sig: Array, h: Array) -> float:
     u = h / max(float(np.linalg.norm(h)), 1e-12)
     var = np.sum((u * s * sig[sl][:3]) ** 2) + np.sum((u * h * sig[sl][3:6] / np.where(s != 0, s, 1.0)) ** 2)
     return float(math.sqrt(var))
+
+
+def nis_in_order(stats: dict[str, dict[str, Any]], band_hi: float) -> bool:
+    """Whether the filter is in order: the latest NIS window ([t, mean] in ``stats[s]["windows"]``, the
+    filter's :class:`.health.NisMonitor` bookkeeping) of the accel and of the mag exists and its mean is at
+    most ``NIS_ORDER`` × ``band_hi``. (While a disturbance is left out the mag adds no NIS: its last
+    window stays the one from before.)"""
+    for s in ("accel", "mag"):
+        w = stats.get(s, {}).get("windows") or []
+        if not w or not float(w[-1][1]) <= NIS_ORDER * band_hi:
+            return False
+    return True
 
 
 def calibrated(x: Array, sensor: str, raw_mean: Array) -> Array:
@@ -97,6 +113,11 @@ class MagDisturbanceGate:
     armed: bool = False
     agreed_since: float = math.nan
 
+    def disarm(self) -> None:
+        """The magnetometer's model was restarted (a divergence): agreement with it must be seen anew before
+        a disagreement counts as a disturbance (while the filter re-learns the terms, it is no change)."""
+        self.active, self.armed, self.agreed_since = False, False, math.nan
+
     def judge(self, x: Array, sig: Array, m_raw: Array, a_raw: Array, gravity: float) -> str | None:
         """Why the block's field disagrees with the model, or None. m_raw (N, 3), a_raw (K, 3) raw samples
         of the block; x, sig (n,) the state and its σ; ``gravity`` m/s²."""
@@ -114,9 +135,18 @@ class MagDisturbanceGate:
         return None
 
     def gate(self, use_mag: bool, x: Array, sig: Array, m_raw: Array, a_raw: Array, t: float, gravity: float,
-             event: Callable[[str, str, float], None]) -> bool:
+             event: Callable[[str, str, float], None], in_order: bool = True) -> bool:
         """``use_mag`` unless the block lies in a disturbance; the events through ``event(kind, detail, t)``
-        at log time t s. Nothing is judged while the magnetometer is not used (cold, or no sample)."""
+        at log time t s. Nothing is judged while the magnetometer is not used (cold, or no sample).
+        ``in_order`` (:func:`nis_in_order`): False disarms the gate (and ends a running stretch: the filter's
+        own NIS disagree, the disagreement is not the magnetometer's alone)."""
+        if not in_order:
+            if self.active:
+                event("mag_disturbance", f"magnetometer disturbance left to the filter: t = {self.since:.1f}–"
+                                         f"{self.last_bad:.1f} s, {self.excluded} filter blocks of magnetometer data "
+                                         "left out; the filter's NIS windows are out of order too", t)
+            self.disarm()
+            return use_mag
         if not use_mag or m_raw.shape[0] == 0:
             return use_mag and not self.active
         why = self.judge(x, sig, m_raw, a_raw, gravity)

@@ -79,7 +79,8 @@ def main() -> None:
         div = sum(e["kind"] == "divergence" for e in res.events)
         rep = [e["detail"].split("t = ")[1].split(" s,")[0] for e in res.events
                if e["kind"] == "mag_disturbance" and e["detail"].startswith("magnetometer disturbance over")]
-        line = (f"seed {seed:2d}  disturbance {eff.start:5.1f}–{eff.start + eff.duration:5.1f} s  worst "
+        span = "none (clean)" if a.clean else f"{eff.start:5.1f}–{eff.start + eff.duration:5.1f} s"
+        line = (f"seed {seed:2d}  disturbance {span}  worst "
                 f"{z[worst]:4.1f}σ {worst:12s} terms>3σ {n3}  divergences {div}  reported {rep or '-'}  "
                 f"{time.perf_counter() - t0:.0f} s")
         if a.batch:

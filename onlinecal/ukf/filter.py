@@ -35,10 +35,11 @@ from ..io.base import ImuData
 from ..model import SENSORS, Calibration
 from . import checkpoint
 from .attitude_init import ellipsoid_gn as ellipsoid_gn  # re-exported (older imports)
-from .blocks import HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer
+from .blocks import SampleBuffer
 from .blocks import third_diff_var as third_diff_var  # re-exported
-from .blocks import value_lattice as value_lattice
 from .config import EXTENSIONS, UKFConfig
+from .detectors import HoldTracker, Lattice, RailDetector, RestDetector
+from .detectors import value_lattice as value_lattice
 from .health import EventLog, NisMonitor
 from .layout import AXES, DIP, SENSOR_SLICE, index
 from .magstart import MagStart

@@ -115,9 +115,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
         status_every_s = 5.0 if out.isatty() else 30.0
     ck, cal, duration_s = _start(checkpoint, resume, init, config, duration_s, out)
     from ..io.live import LiveSource
-
-    opts = dict(source_options or {})
-    opts.setdefault("timeout_s", idle_timeout_s)
+    opts = {"timeout_s": idle_timeout_s, **(source_options or {})}
     src = LiveSource(url, rate_hz=rate_hz, duration_s=duration_s, acc_scale=acc_scale, gyro_scale=gyro_scale,
                      mag_scale=mag_scale, imu=imu, source_system=source_system, source_component=source_component,
                      **opts)

@@ -88,16 +88,31 @@ class Segmentation:
         return bool(np.diff(t).max() > factor * self.max_gap)
 
 
-def moving_std(x: Array, w: int) -> tuple[Array, Array]:
-    """Centered moving mean and std over windows of w samples, (N, k) → (N, k) each, via cumsums."""
+def moving_std(x: Array, w: int, block: int = 1 << 15) -> tuple[Array, Array]:
+    """Centered moving mean and std over windows of w samples, (N, k) → (N, k) each, via cumsums.
+
+    Worked in blocks of ``block`` output rows, each with its own cumsums over the samples its windows
+    need: the temporaries stay bounded for any log length (before: seven (N, k) arrays at once), and the
+    sums never run over the whole log (no loss of precision in ``c2[b] - c2[a]`` on an hour-long log)."""
     n = x.shape[0]
+    k = x.shape[1]
     w = max(2, min(w, n))
-    c1 = np.cumsum(np.vstack([np.zeros((1, x.shape[1])), x]), axis=0)
-    c2 = np.cumsum(np.vstack([np.zeros((1, x.shape[1])), x * x]), axis=0)
-    lo = np.clip(np.arange(n) - w // 2, 0, n - w)
-    mean = (c1[lo + w] - c1[lo]) / w
-    var = (c2[lo + w] - c2[lo]) / w - mean**2
-    return mean, np.sqrt(np.maximum(var, 0.0))
+    mean = np.empty((n, k))
+    sd = np.empty((n, k))
+    for b0 in range(0, n, block):
+        b1 = min(n, b0 + block)
+        lo = np.clip(np.arange(b0, b1) - w // 2, 0, n - w)
+        s0, s1 = int(lo[0]), int(lo[-1]) + w
+        xs = np.asarray(x[s0:s1], np.float64)
+        c1 = np.zeros((s1 - s0 + 1, k))
+        c2 = np.zeros((s1 - s0 + 1, k))
+        np.cumsum(xs, axis=0, out=c1[1:])
+        np.cumsum(xs * xs, axis=0, out=c2[1:])
+        j = lo - s0
+        m = (c1[j + w] - c1[j]) / w
+        mean[b0:b1] = m
+        sd[b0:b1] = np.sqrt(np.maximum((c2[j + w] - c2[j]) / w - m**2, 0.0))
+    return mean, sd
 
 
 def _runs(mask: Array) -> list[tuple[int, int]]:

@@ -6,7 +6,11 @@ only :class:`LogError` for unusable input; the shared drop policy is in :mod:`on
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from onlinecal.io.base import ImuData, LogError, LogReader
 from onlinecal.io.csv import CsvReader, write_csv
@@ -58,9 +62,28 @@ def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
     """The whole log as one ImuData (the concatenation of the reader's blocks), warnings, clock-segment
     boundaries, parameters and series included."""
     reader = open_log(path, acc_scale, gyro_scale, mag_scale, imu=imu)
-    data = ImuData.concat(reader.blocks(max_samples), source=str(path))
+    # Joined one array at a time, each list freed once joined: the peak is the log plus one array of it
+    # (ImuData.concat of the blocks would hold the blocks and the joined log at once, twice the log).
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in _COLUMNS}
+    heads = []
+    for b in reader.blocks(max_samples):
+        for k in _COLUMNS:
+            cols[k].append(getattr(b, k))
+        heads.append(replace(b, t_imu=b.t_imu[:0], gyro=b.gyro[:0], acc=b.acc[:0], temp=b.temp[:0],
+                             t_mag=b.t_mag[:0], mag=b.mag[:0]))
+    data = ImuData.concat(heads, source=str(path))  # warnings, boundaries, params, series
+    joined: dict[str, Any] = {}
+    for k in _COLUMNS:
+        parts = cols.pop(k)
+        joined[k] = np.concatenate(parts).reshape((-1, 3) if k in ("gyro", "acc", "mag") else (-1,)) if parts \
+            else getattr(data, k)
+        del parts
+    data = replace(data, **joined)
     data.warnings = list(reader.warnings)
     return data
+
+
+_COLUMNS = ("t_imu", "gyro", "acc", "temp", "t_mag", "mag")
 
 
 def write_log(path: str | Path, data: ImuData) -> None:

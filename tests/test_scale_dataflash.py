@@ -14,8 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onlinecal.io import read_log, write_dataflash
-from onlinecal.io import dfparse
+from onlinecal.io import dfparse, read_log, write_dataflash
 from onlinecal.io.dfparse import DataflashParser
 from onlinecal.sim import simulate
 
@@ -169,7 +168,7 @@ def test_reading_a_six_times_longer_log_takes_no_more_memory(tmp_path):
     # parser holds one chunk of the file and the blocks being built, never the whole log.
     peaks = {}
     for minutes in (10, 60):
-        sim = simulate("paper", 1, duration=60.0 * minutes, imu_rate=200.0, mag_rate=50.0)
+        sim = simulate("flight", 1, duration=60.0 * minutes, imu_rate=200.0, mag_rate=50.0)
         p = tmp_path / f"{minutes}.bin"
         write_dataflash(p, sim.data)
         del sim

@@ -57,6 +57,9 @@ def open_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
                    f"{', '.join(EXTENSIONS)}")
 
 
+_COLUMNS = ("t_imu", "gyro", "acc", "temp", "t_mag", "mag")  # ImuData's sample arrays
+
+
 def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
              mag_scale: float | None = None, max_samples: int = 1 << 16, imu: int = 0) -> ImuData:
     """The whole log as one ImuData (the concatenation of the reader's blocks), warnings, clock-segment
@@ -69,9 +72,12 @@ def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
     for b in reader.blocks(max_samples):
         for k in _COLUMNS:
             cols[k].append(getattr(b, k))
-        heads.append(replace(b, t_imu=b.t_imu[:0], gyro=b.gyro[:0], acc=b.acc[:0], temp=b.temp[:0],
-                             t_mag=b.t_mag[:0], mag=b.mag[:0]))
+        # the block without its samples (fresh empty arrays: a view [:0] would keep the block alive)
+        e1, e3 = np.zeros(0), np.zeros((0, 3))
+        heads.append(replace(b, t_imu=e1, gyro=e3, acc=e3, temp=e1, t_mag=e1, mag=e3))
+        del b
     data = ImuData.concat(heads, source=str(path))  # warnings, boundaries, params, series
+    del heads
     joined: dict[str, Any] = {}
     for k in _COLUMNS:
         parts = cols.pop(k)
@@ -81,9 +87,6 @@ def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
     data = replace(data, **joined)
     data.warnings = list(reader.warnings)
     return data
-
-
-_COLUMNS = ("t_imu", "gyro", "acc", "temp", "t_mag", "mag")
 
 
 def write_log(path: str | Path, data: ImuData) -> None:

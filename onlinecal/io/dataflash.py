@@ -142,7 +142,9 @@ class DataflashReader:
                       f"by it, so a calibration fitted here is a residual on top of it")
         asm.series = acc.series()
         if parser.skipped:
-            filt.note(f"skipped {parser.skipped} corrupt bytes that begin no DataFlash record")
+            zero = (f" ({parser.skipped_zero} of them zero: an erased or pre-allocated stretch)"
+                    if parser.skipped_zero else "")
+            filt.note(f"skipped {parser.skipped} corrupt bytes that begin no DataFlash record{zero}")
         if acc.mag_unusable:
             filt.note(f"magnetometer not read: {acc.mag_unusable}")
         asm.add(*filt.flush())

@@ -115,29 +115,32 @@ def _walker() -> Any:
         @njit(cache=True, nogil=True)
         def walk(buf, pos, end, lengths, out):  # pragma: no cover - compiled
             """Record offsets from ``pos`` into ``out`` until the buffer ends, ``out`` is full or a FMT
-            record has been taken (returned last). Returns (n, pos, skipped bytes, code): code 0 the
+            record has been taken (returned last). Returns (n, pos, skipped bytes, of them zero, code): code 0 the
             buffer ends (or a record runs past it), 1 a FMT record ended the run, 2 ``out`` is full."""
             n = 0
             skipped = 0
+            zeros = 0
             cap = out.shape[0]
             while pos + 3 <= end:
                 if n == cap:
-                    return n, pos, skipped, 2
+                    return n, pos, skipped, zeros, 2
                 if buf[pos] == 0xA3 and buf[pos + 1] == 0x95:
                     typ = buf[pos + 2]
                     ln = lengths[typ]
                     if ln >= 3:
                         if pos + ln > end:
-                            return n, pos, skipped, 0
+                            return n, pos, skipped, zeros, 0
                         out[n] = pos
                         n += 1
                         pos += ln
                         if typ == 0x80:
-                            return n, pos, skipped, 1
+                            return n, pos, skipped, zeros, 1
                         continue
                 skipped += 1
+                if buf[pos] == 0:
+                    zeros += 1
                 pos += 1
-            return n, pos, skipped, 0
+            return n, pos, skipped, zeros, 0
 
         _WALK = walk
     return _WALK
@@ -167,6 +170,7 @@ class DataflashParser:
         self.n_records = 0
         self.n_wanted = 0
         self.skipped = 0
+        self.skipped_zero = 0  # of the skipped bytes, those that are 0 (an erased or pre-allocated stretch)
         self.stopped_at: int | None = None
         self.data_len = 0
 
@@ -192,8 +196,9 @@ class DataflashParser:
                     base += pos
                     pos = 0
                 while True:
-                    n, pos, skipped, code = walk(buf, pos, buf.size, lengths, out)
+                    n, pos, skipped, zeros, code = walk(buf, pos, buf.size, lengths, out)
                     self.skipped += int(skipped)
+                    self.skipped_zero += int(zeros)
                     self.n_records += int(n)
                     offs = out[:n].copy()
                     if code == 1:

@@ -8,6 +8,9 @@ gyro bias ≤ 1e-3 rad/s, gyro scale ≤ 0.1 %, each sensor's matrix ≤ 0.5 %, 
 
 ``--long``: the batch on simulated 200 Hz flights of 10 minutes and one hour, each in a fresh process, with
 CPU time, wall time and peak resident memory, and the one-hour/10-minute ratios (issue 16: time ≤ 6×).
+Then the command line on the same flights written as DataFlash ``.bin`` files, each command in a fresh
+process: ``batch``, ``replay --init none`` (streamed) and ``replay`` (its default start, ``--init batch``),
+with the one-hour/10-minute ratios of CPU time and peak memory (issue 16: memory ≤ 1.2×).
 """
 
 from __future__ import annotations
@@ -37,6 +40,54 @@ print(json.dumps({"cpu": time.process_time() - c0, "wall": time.perf_counter() -
 """
 
 
+_CLI = """
+import resource, runpy, sys, time
+c0, t0 = time.process_time(), time.perf_counter()
+sys.argv = ["onlinecal", *sys.argv[1:]]
+try:
+    runpy.run_module("onlinecal", run_name="__main__")
+except SystemExit:
+    pass
+# VmHWM, the peak of this process's own memory: ru_maxrss would carry the parent's peak across fork + exec
+hwm = [int(x.split()[1]) for x in open("/proc/self/status") if x.startswith("VmHWM:")]
+print("BENCH", time.process_time() - c0, time.perf_counter() - t0,
+      (hwm[0] if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) / 1e3, file=sys.stderr)
+"""
+
+
+def cli_logs(tmp: str) -> None:
+    """The command line on 10-minute and one-hour 200 Hz flights written as .bin, each run in a fresh process."""
+    import os
+
+    from onlinecal.io import write_log
+
+    paths = {}
+    for dur in (600.0, 3600.0):
+        p = os.path.join(tmp, f"flight{int(dur)}.bin")
+        sim = simulate("flight", 1, duration=dur, imu_rate=200.0, mag_rate=50.0)
+        write_log(p, sim.data)
+        del sim
+        paths[dur] = p
+    cmds = {"batch": ["batch"], "replay --init none": ["replay", "--init", "none"], "replay (--init batch)": ["replay"]}
+    for name, args in cmds.items():
+        got = {}
+        for dur, p in paths.items():
+            out = os.path.join(tmp, "out.json")
+            r = subprocess.run([sys.executable, "-c", _CLI, *args, p, "--json", out], capture_output=True, text=True)
+            line = [x for x in r.stderr.splitlines() if x.startswith("BENCH ")]
+            if not line:
+                print(f"{name} on {dur / 60:.0f} min: failed (exit {r.returncode}): {r.stderr[-300:]}")
+                break
+            cpu, wall, rss = map(float, line[-1].split()[1:])
+            got[dur] = (cpu, wall, rss)
+            print(f"{name:>22}, {dur / 60:>3.0f} min: CPU {cpu:7.2f} s, wall {wall:7.2f} s, peak RSS {rss:5.0f} MB "
+                  f"(exit {r.returncode})")
+        if len(got) == 2:
+            a, b = got[600.0], got[3600.0]
+            print(f"{name:>22}: one hour / 10 min: CPU {b[0] / a[0]:.2f}x (6x), wall {b[1] / a[1]:.2f}x, "
+                  f"peak RSS {b[2] / a[2]:.2f}x (1.2x)")
+
+
 def long_logs() -> None:
     """10-minute and one-hour 200 Hz flights, each batch in its own process (peak memory is per process)."""
     out = {}
@@ -58,9 +109,15 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--long", action="store_true", help="time 10-minute and one-hour 200 Hz flights instead")
+    ap.add_argument("--no-cli", action="store_true", help="with --long: the batch in-process only")
     a = ap.parse_args()
     if a.long:
         long_logs()
+        if not a.no_cli:
+            import tempfile
+
+            with tempfile.TemporaryDirectory() as tmp:
+                cli_logs(tmp)
         return
     rows = []
     print(f"{'seed':>4} {'T [s]':>6} {'wall [s]':>8} {'gyro bias':>10} {'gyro scale %':>12} "

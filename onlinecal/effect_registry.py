@@ -2,14 +2,24 @@
 the simulator makes it, how an extension undoes it, which UKF state carries it and whether a live run can
 apply it block by block.
 
-The simulator (:mod:`onlinecal.sim.effects`), the extensions (:mod:`onlinecal.extensions`), live/replay
+The simulator (``sim/effects.py``), the extensions (:mod:`onlinecal.extensions`), live/replay
 (:mod:`onlinecal.apply_ext`) and ``diagnose`` read this table instead of keeping their own lists. It imports
-nothing from the package, so every layer (production and simulator) may import it.
+nothing from the package, so every layer (production and simulator) may import it; the simulator consumes
+it, never the reverse. Besides the table: the keys of each effect's spec with their defaults
+(:data:`EFFECT_KEYS`, the contract's effect table) and the forward models production needs to undo an
+effect (:func:`lever_arm_acceleration`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+AXES: tuple[str, ...] = ("x", "y", "z")
 
 
 @dataclass(frozen=True)
@@ -18,7 +28,7 @@ class EffectInfo:
 
     ``sensors``: the sensors it may act on (first = default); ``required``: extension keys that must be given
     (a missing coefficient must not silently become the simulator's default); ``forward``: the simulator's
-    class (in :mod:`onlinecal.sim.effects`); ``inverse``: how :func:`onlinecal.extensions.correct` undoes it
+    class (in ``sim/effects.py``); ``inverse``: how :func:`onlinecal.extensions.correct` undoes it
     ("pointwise", "resample", "none" — not removable from the data); ``ukf_state``: the UKF extension state
     that can estimate it instead (``sensor`` → state name), if any; ``live``: a live run can apply it block by
     block; ``diagnosed``: ``diagnose`` has a candidate for it.
@@ -63,3 +73,25 @@ REQUIRED: dict[str, tuple[str, ...]] = {n: e.required for n, e in REGISTRY.items
 UKF_STATE: dict[tuple[str, str], str] = {(n, s): st for n, e in REGISTRY.items() for s, st in e.ukf_state}
 LIVE_POINTWISE: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.live)
 NOT_REMOVABLE: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.inverse == "none")
+
+# Keys of each effect's spec and their defaults (the contract's effect table). None: depends on the sensor
+# (saturation's limit) or all axes (axis); g_sensitivity's matrix None: diagonal only. The simulator's
+# effect classes have exactly these fields and defaults (checked where they are defined, sim/effects.py).
+EFFECT_KEYS: dict[str, dict[str, Any]] = {
+    "temperature_bias": {"sensor": "gyro", "axis": None, "coeff": 0.0005, "rise": 15.0, "tau": 90.0},
+    "bias_drift": {"sensor": "gyro", "axis": None, "density": 0.0001},
+    "g_sensitivity": {"sensor": "gyro", "axis": None, "coeff": 0.0001, "matrix": None},
+    "time_offset": {"sensor": "mag", "seconds": 0.02},
+    "saturation": {"sensor": "gyro", "limit": None},
+    "scale_nonlinearity": {"sensor": "gyro", "axis": None, "coeff": 0.002},
+    "lever_arm": {"x": 0.05, "y": 0.03, "z": -0.02},
+    "axis_sign": {"sensor": "gyro", "axis": "z"},
+}
+assert tuple(EFFECT_KEYS) == EFFECTS
+
+
+def lever_arm_acceleration(omega: Array, omega_dot: Array, r: Array) -> Array:
+    """Specific force added at an accelerometer r (3,) m from the centre of rotation (lever_arm's forward
+    model): ω̇×r + ω×(ω×r) (tangential + centripetal), (N, 3) m/s² for ω (N, 3) rad/s, ω̇ (N, 3) rad/s²."""
+    out: Array = np.cross(omega_dot, r) + np.cross(omega, np.cross(omega, r))
+    return out

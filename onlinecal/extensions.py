@@ -1,8 +1,9 @@
-"""Model extensions: the inverse of each effect of ``onlinecal.sim.effects``, applied to RAW data before
+"""Model extensions: the inverse of each effect of the vocabulary (:mod:`onlinecal.effect_registry`; the
+simulator's forward models are in ``sim/effects.py``), applied to RAW data before
 the paper's model ``calibrated = matrix @ (raw − bias)`` (Zhang et al. 2014, eq. 1).
 
 A calibration JSON may carry ``"extensions": {"<effect>": {...}}`` (contract; ``Calibration.extensions``)
-with the same keys as the effect spec (``onlinecal.sim.effects.EFFECT_KEYS``) plus:
+with the same keys as the effect spec (``onlinecal.effect_registry.EFFECT_KEYS``) plus:
 
 * ``temperature_bias``: ``T0`` (°C, default 25), the temperature at which the bias is the paper
   model's bias; ``rise`` and ``tau`` describe a simulated session and are accepted but unused;
@@ -11,7 +12,7 @@ with the same keys as the effect spec (``onlinecal.sim.effects.EFFECT_KEYS``) pl
 * informative keys of the simulator's truth (``clipped_fraction``, ``walk_final``) are ignored.
 
 What each extension does, in the order :func:`correct` applies them (the reverse of the simulator's
-signal chain, ``onlinecal.sim.effects`` module docstring):
+signal chain, the ``sim/effects.py`` module docstring):
 
 ====================  ==========================================================================
 axis_sign             ``raw_axis ← −raw_axis`` (the flip is its own inverse)
@@ -48,10 +49,9 @@ from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 from scipy.signal import savgol_filter
 
-from .effect_registry import REQUIRED, SENSORS_OF
+from .effect_registry import AXES, EFFECT_KEYS, EFFECTS, REQUIRED, SENSORS_OF, lever_arm_acceleration
 from .io.base import ImuData
 from .model import Calibration
-from .sim.effects import AXES, EFFECT_KEYS, EFFECTS, LeverArm
 
 Array = NDArray[np.float64]
 
@@ -203,7 +203,7 @@ def _lever(data_t: Array, gyro: Array, cal: Calibration, r: Array) -> Array:
     """M_acc⁻¹·(ω̇×r + ω×(ω×r)) in raw accelerometer units, ω from the calibrated gyro."""
     assert cal.gyro is not None and cal.accel is not None
     w = cal.gyro.apply(gyro)
-    a = LeverArm.acceleration(w, smoothed_derivative(data_t, w), r)
+    a = lever_arm_acceleration(w, smoothed_derivative(data_t, w), r)
     return a @ np.linalg.inv(cal.accel.matrix).T
 
 

@@ -49,6 +49,7 @@ def test_compare_reports_differences_in_sigma(session):
     assert "gyro.bias.x" in r.stdout and "|Δ|/σ" in r.stdout
 
 
+@pytest.mark.slow
 def test_csv_round_trip_and_bin(tmp_path):
     for ext in (".csv", ".bin"):
         log = tmp_path / f"s{ext}"
@@ -88,6 +89,7 @@ def test_too_little_data_is_exit_2_not_traceback(tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr and "short.csv" in r.stderr
 
 
+@pytest.mark.slow
 def test_demo_writes_its_files(tmp_path):
     r = run("demo", "--out", str(tmp_path / "demo"))
     assert r.returncode == 0, r.stderr

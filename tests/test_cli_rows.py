@@ -222,6 +222,7 @@ def test_export_guard_on_the_command_line(session: dict[str, Path], tmp_path: Pa
     assert f.returncode == 0 and "\nINS_ACCOFFS_Z " in f.stdout
 
 
+@pytest.mark.slow
 def test_divergence_reported_on_stderr_and_in_the_verdict(session: dict[str, Path], tmp_path: Path) -> None:
     """A replay started from a wrong calibration (gyro scale 1.0 against the truth's 1.14, accel bias off by
     1 m/s²) must not end silently: its health is not ok and the reason is printed."""

@@ -302,6 +302,7 @@ def _batch(*paths: Path) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 def test_cli_batch_on_damaged_logs(tmp_path, sess):
     from onlinecal.sim import simulate
 

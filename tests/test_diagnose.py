@@ -50,6 +50,7 @@ def _matches(f, truth: dict) -> list[str]:
     return bad
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [21, 22])
 @pytest.mark.parametrize("name", EFFECTS)
 def test_hidden_effect_is_the_verdict(name: str, seed: int) -> None:
@@ -64,11 +65,13 @@ def test_hidden_effect_is_the_verdict(name: str, seed: int) -> None:
         assert top.score > top.threshold >= top.null_score
 
 
+@pytest.mark.slow
 def test_clean_sessions_verdict_none_in_19_of_20() -> None:
     verdicts = [diagnose([simulate("paper", 100 + s).data], check=False, seed=s, ukf=False).verdict for s in range(20)]
     assert sum(v == "none" for v in verdicts) >= 19, verdicts
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [31, 32])
 def test_two_hidden_effects_are_both_significant(seed: int) -> None:
     rng = np.random.default_rng(2000 + seed)
@@ -82,6 +85,7 @@ def test_two_hidden_effects_are_both_significant(seed: int) -> None:
     assert {a, b} <= found, (sim.truth.effects, [(f.effect, f.score) for f in diag.findings[:5]])
 
 
+@pytest.mark.slow
 def test_cli_json_report_and_extension(tmp_path) -> None:
     rng = np.random.default_rng(7)
     eff = random_effect("g_sensitivity", rng)
@@ -130,6 +134,7 @@ def test_real_session_with_little_motion_does_not_crash(data_dir) -> None:
     json.loads(diag.to_json())
 
 
+@pytest.mark.slow
 def test_extended_calibration_improves_replay_and_ukf_nis(tmp_path, capsys) -> None:
     """A hidden gyro temperature_bias (coefficient drawn per seed): diagnose writes the extended calibration and
     the UKF's NIS before/after; ``replay --init extended.json`` (the extension applied to the log by

@@ -38,6 +38,7 @@ def test_one_hertz_log_gets_no_findings() -> None:
     assert "1 Hz" in text
 
 
+@pytest.mark.slow
 def test_wrong_gyro_scale_is_the_first_finding_not_an_effect() -> None:
     """A baseline whose gyro matrix is 0.2× the truth: the accelerometer's and the magnetometer's kinematic
     invariants both fail against the gyro, so the first finding names the gyro; no effect is significant."""
@@ -54,6 +55,7 @@ def test_wrong_gyro_scale_is_the_first_finding_not_an_effect() -> None:
     assert set(d.baseline["adequacy"]["dropped_channels"]) >= {"ka_x", "km_x"}
 
 
+@pytest.mark.slow
 def test_clean_paper_session_baseline_is_adequate() -> None:
     s = simulate("paper", 7)
     d = diagnose([s.data], check=False, ukf=False)

@@ -48,6 +48,7 @@ def test_extension_inverts_the_full_matrix() -> None:
     assert np.allclose(gsens_matrix({"axis": "y", "coeff": 2e-4}), np.diag([0, 2e-4, 0]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2])
 def test_full_matrix_named_within_20_percent(seed: int) -> None:
     e = random_gsens_matrix(np.random.default_rng(500 + seed))

@@ -62,6 +62,7 @@ def short_fleet(tmp_path_factory):
     return paths, truth.replace(source="batch").to_dict(), n_imu
 
 
+@pytest.mark.slow
 def test_jobs_and_dask_agree_exactly_and_a_corrupt_log_is_isolated(short_fleet):
     from dask.distributed import LocalCluster
 
@@ -116,6 +117,7 @@ def drifting_fleet(tmp_path_factory):
     return [paths[2], str(bad), paths[0], paths[1]], paths, days, truths, d
 
 
+@pytest.mark.slow
 def test_cli_jobs_jsonl_and_drift_summary(drifting_fleet):
     given, paths, days, truths, d = drifting_fleet
     out = d / "fleet.jsonl"

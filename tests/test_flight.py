@@ -82,6 +82,7 @@ def test_paper_session_is_not_a_vehicle():
     assert obs["vehicle"]["active"] is False
 
 
+@pytest.mark.slow
 def test_vibrating_vehicle_detected_and_not_at_rest():
     """Armed on the ground with rotor vibration: detected at arming; the rest test (spec noise) rejects
     the vibrating stretches, so only the disarmed ones (before arming, after landing) are rests."""
@@ -96,6 +97,7 @@ def test_vibrating_vehicle_detected_and_not_at_rest():
     assert disarmed_s - 3.0 < cov["rest_s"] < disarmed_s + 0.5  # the disarmed stretches only
 
 
+@pytest.mark.slow
 def test_observability_report_in_json_and_words(tmp_path):
     """A short multirotor flight: the gyro bias is determined (ground rest), the gyro x/y scale is not,
     and the report says why (rates reached) and which motion would determine it; the JSON carries it."""

@@ -163,6 +163,7 @@ def bases(tmp_path_factory) -> dict[str, bytes]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", list(EXAMPLES))
 def test_damaged_files_give_data_or_one_line_error(kind, bases, tmp_path, capfd):
     if kind not in bases:

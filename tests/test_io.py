@@ -348,6 +348,7 @@ def test_blocks_are_bounded_and_concat_to_read_log(tmp_path, ext, n):
     assert_same(ImuData.concat(blocks), whole)
 
 
+@pytest.mark.slow
 def test_csv_streaming_memory_does_not_grow_with_the_log(tmp_path):
     peaks = []
     for n in (20000, 80000):

@@ -41,6 +41,7 @@ def _make_table():
     return mod
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("log", PAPER, ids=lambda p: p.name)
 def test_corpus_table_flags_are_explained(log):
     """The table's claim for the paper sessions read through their real formats: the online filter (from

@@ -81,6 +81,7 @@ def _table(md: str, header_start: str) -> list[list[str]]:
     ("rr", {"mag_sphere.png", "field_norm.png", "accel_statics.png", "ukf_gyro.png", "ukf_accel.png",
             "ukf_mag.png", "batch_vs_online.png"}),
 ])
+@pytest.mark.slow
 def test_report_files_are_real_pngs_and_all_referenced(session, which, expected):
     import matplotlib.image as mpimg
 
@@ -98,6 +99,7 @@ def test_report_files_are_real_pngs_and_all_referenced(session, which, expected)
         assert img.shape[:2] == (h, w) and float(img[..., :3].std()) > 0.05  # not a blank canvas
 
 
+@pytest.mark.slow
 def test_mag_norm_numbers_match_an_independent_computation(session):
     d, _, log, _, _ = session
     raw = _csv(log)["mag"]
@@ -121,6 +123,7 @@ def test_mag_norm_numbers_match_an_independent_computation(session):
             assert c.std() < 3e-3
 
 
+@pytest.mark.slow
 def test_static_interval_numbers_match_the_log_and_the_simulated_holds(session):
     d, sim, log, _, _ = session
     x = _csv(log)
@@ -151,6 +154,7 @@ def test_static_interval_numbers_match_the_log_and_the_simulated_holds(session):
     assert np.sqrt(np.mean(np.array(after) ** 2)) < 0.01  # README bound: static accel norm within 0.01 m/s²
 
 
+@pytest.mark.slow
 def test_batch_vs_online_table_matches_the_two_jsons(session):
     d = session[0]
     b, o = (json.loads((d / f).read_text()) for f in ("b.json", "o.json"))
@@ -169,11 +173,13 @@ def test_batch_vs_online_table_matches_the_two_jsons(session):
         assert float(z) == pytest.approx((o[s][p][j] - b[s][p][j]) / sig, abs=0.006)
 
 
+@pytest.mark.slow
 def test_batch_report_says_the_filter_did_not_run(session):
     md = (session[0] / "rb" / "report.md").read_text()
     assert "Not run by this command" in md and "ukf_" not in md
 
 
+@pytest.mark.slow
 def test_no_progress_output_on_a_pipe(session):
     _, _, _, rb, rr = session
     for r in (rb, rr):
@@ -198,6 +204,7 @@ def _on_a_tty(args: list[str]) -> tuple[int, bytes]:
     return p.wait(timeout=600), out
 
 
+@pytest.mark.slow
 def test_progress_drawn_on_a_terminal_and_off_with_quiet(session):
     d, _, log, _, _ = session
     rc, out = _on_a_tty(["batch", str(log), "--report", str(d / "tty")])

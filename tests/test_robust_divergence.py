@@ -140,7 +140,7 @@ def test_a_divergence_declared_by_the_nis_windows_restarts_the_state() -> None:
 def test_a_negative_nis_is_a_divergence_in_the_filter(monkeypatch: pytest.MonkeyPatch) -> None:
     """An update whose NIS is negative (an indefinite innovation covariance) passed the gate ("ok") and the
     windows; now it is a numerical failure: a divergence, and its posterior is not committed."""
-    import onlinecal.ukf.filter as flt
+    import onlinecal.ukf.step as flt  # the gated update's module
 
     sim = simulate("paper", 2, duration=50.0)
     cal = OnlineCalibrator(None)

@@ -139,6 +139,7 @@ def uninterrupted(paper) -> SimpleNamespace:
                            sender=snd.result, wall=wall)
 
 
+@pytest.mark.slow
 def test_lossy_udp_live_run_matches_replay_of_the_same_log(paper, uninterrupted) -> None:
     """Issue 3: RAW_IMU over UDP with 10 % loss, reordering and duplicates into the real CLI gives the
     calibration of `onlinecal replay` on the same .tlog within 3σ (replay's σ) for every parameter."""
@@ -166,6 +167,7 @@ def test_lossy_udp_live_run_matches_replay_of_the_same_log(paper, uninterrupted)
         assert set(d[s]["sigma"]) == set(PARAMS)
 
 
+@pytest.mark.slow
 def test_kill_9_and_resume_matches_uninterrupted_run(paper, uninterrupted) -> None:
     """Issue 5: the run is killed (SIGKILL) mid-stream and restarted with --resume while the vehicle keeps
     streaming; the final result is within 3σ of the uninterrupted run's for every parameter."""
@@ -219,6 +221,7 @@ def test_kill_9_and_resume_matches_uninterrupted_run(paper, uninterrupted) -> No
     assert z <= 3.0, name
 
 
+@pytest.mark.slow
 def test_unusable_checkpoint_exits_2_with_one_line(tmp_path, capsys, paper, uninterrupted) -> None:
     url = f"udpin:127.0.0.1:{free_port()}"
     good = json.loads((paper.dir / "live.ckpt").read_text())
@@ -244,6 +247,7 @@ def test_unusable_checkpoint_exits_2_with_one_line(tmp_path, capsys, paper, unin
     assert "--checkpoint" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_ctrl_c_then_apply_sets_parameters_confirmed_by_param_value(paper, tmp_path) -> None:
     """Ctrl-C (SIGINT) ends the run with a result; then (issue 5) --apply ardupilot sends every vehicle
     parameter with PARAM_SET: the test vehicle's table holds float32(value) of each, all confirmed."""
@@ -279,6 +283,7 @@ def test_ctrl_c_then_apply_sets_parameters_confirmed_by_param_value(paper, tmp_p
     assert f"applied {len(params)} of {len(params)} ardupilot parameters" in run.out.read_text()
 
 
+@pytest.mark.slow
 def test_set_params_protocol_edge_cases(paper) -> None:
     """PARAM_SET/PARAM_VALUE against the test vehicle: float32 landing, a 16-character name, a name the
     (strict, ArduPilot-like) vehicle does not have, a 17-character name, PX4's bytewise int32."""

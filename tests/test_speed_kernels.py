@@ -180,6 +180,7 @@ def test_unscented_innovation_and_gain_kernels_equal_numpy():
     _close(xk, Kk @ nu)
 
 
+@pytest.mark.slow
 def test_numba_cache_dir_falls_back_when_package_dir_is_unwritable(tmp_path):
     """With no cache directory possible next to the kernels (``__pycache__`` there is a plain file, which
     no user, root included, can create files in) and no NUMBA_CACHE_DIR, the kernels module picks a
@@ -290,6 +291,7 @@ def test_sigma_points_and_moments_equal_unscented():
         _close(a, b)
 
 
+@pytest.mark.slow
 def test_unknown_backend_in_the_environment_warns_and_runs_on_the_default(tmp_path):
     env = {**os.environ, "ONLINECAL_KERNELS": "fortran",
            "PYTHONPATH": str(Path(kernels.__file__).resolve().parents[2])}

@@ -390,6 +390,7 @@ def test_cold_accel_at_one_static_pose_stays_consistent():
         assert float(z @ z) < chi2.ppf(0.999, 12), (seed, float(z @ z))
 
 
+@pytest.mark.slow
 def test_noise_monitor_ignores_dropped_samples(short_paper):
     """10 % of the IMU samples dropped at random: the third differences across a missing sample hold the
     motion over it, not noise; they are left out, so no noise event is raised (the full log raises none)

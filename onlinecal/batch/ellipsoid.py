@@ -8,16 +8,19 @@ so M is returned symmetric; the rotation to the body frame is found later (eqs. 
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 _IU = np.triu_indices(3)
+_JJ, _KK = _IU
+_OFF = (_JJ != _KK).astype(float)
 
 
 class FitError(ValueError):
@@ -91,6 +94,52 @@ class NormFit:
     n_params: int
 
 
+def _resid_jac_full(p: Array, pts: Array, r: float) -> tuple[Array, Array]:
+    """Residuals ‖M (x − o)‖ − r (N,) of the full model and their Jacobian (N, 9) for p = (o, upper triangle
+    of the symmetric M): with d = x − o, y = M d, n = y/‖y‖, ∂/∂o = −M n and ∂/∂M_jk = n_j d_k + n_k d_j
+    (j < k), n_j d_j (j = k)."""
+    o = p[:3]
+    M = sym_from_vec(p[3:])
+    d = pts - o
+    y = d @ M
+    ny = np.sqrt(np.einsum("ij,ij->i", y, y))
+    nv = y / ny[:, None]
+    J = np.empty((pts.shape[0], 9))
+    J[:, :3] = -(nv @ M)
+    J[:, 3:] = nv[:, _JJ] * d[:, _KK] + _OFF * nv[:, _KK] * d[:, _JJ]
+    return ny - r, J
+
+
+def levenberg_marquardt(fun: Callable[[Array], tuple[Array, Array]], p: Array, max_iter: int) -> Array:
+    """Minimise ‖r(p)‖² by Levenberg–Marquardt with Marquardt's scaling (damping λ diag(JᵀJ)), from p, at
+    most ``max_iter`` steps; ``fun(p)`` gives the residuals r (N,) and their analytic Jacobian (N, P). Stops
+    when a step lowers the cost by less than 1e-12 of it, or λ passes 1e8 (no step lowers it)."""
+    lam = 1e-3
+    r, J = fun(p)
+    cost = float(r @ r)
+    for _ in range(max_iter):
+        A = J.T @ J
+        g = J.T @ r
+        try:
+            step = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
+        except np.linalg.LinAlgError:
+            break
+        p_new = p + step
+        r_new, J_new = fun(p_new)
+        c_new = float(r_new @ r_new)
+        if np.isfinite(c_new) and c_new < cost:
+            done = cost - c_new < 1e-12 * cost
+            p, r, J, cost = p_new, r_new, J_new, c_new
+            lam = max(lam / 10.0, 1e-12)
+            if done:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e8:
+                break
+    return p
+
+
 def fit_norm_lm(
     x: Array,
     r: float,
@@ -99,8 +148,9 @@ def fit_norm_lm(
     model: str = "full",
     reject_sigma: float = 5.0,
     weights: Array | None = None,
-    max_nfev: int = 200,
+    max_iter: int = 200,
     refine: bool = True,
+    rounds: int = 2,
 ) -> NormFit:
     """Geometric fit of ‖M (x − o)‖ = r by Levenberg–Marquardt (eq. 17; eq. 32 for the accelerometer).
 
@@ -110,8 +160,11 @@ def fit_norm_lm(
     all nine. ``weights`` (N,) ≥ 0: each sample's share (e.g. 1 / samples in its attitude bin, so that a
     long rest counts as one attitude); the covariance then uses the effective sample count
     (Σw)² / Σw². Outlier rejection at ``reject_sigma`` × MAD (where the points outnumber the parameters
-    fourfold), then a refit. The Jacobian is analytic: ∂‖y‖/∂o = −Mᵀy/‖y‖, ∂‖y‖/∂M_jk = (y_j d_k + y_k d_j)/‖y‖
-    (j ≠ k; y_j d_j/‖y‖ on the diagonal) with d = x − o, y = M d. ``refine=False`` keeps (o0, M0) and only
+    fourfold), then a refit; at most ``rounds`` such rounds. The minimiser is :func:`levenberg_marquardt`
+    (at most ``max_iter`` steps). This is the package's one eq. 17 fit: the UKF's cold magnetometer start
+    (:func:`onlinecal.ukf.attitude_init.ellipsoid_gn`) calls it too. The Jacobian is analytic:
+    ∂‖y‖/∂o = −Mᵀy/‖y‖, ∂‖y‖/∂M_jk = (y_j d_k + y_k d_j)/‖y‖ (j ≠ k; y_j d_j/‖y‖ on the diagonal) with
+    d = x − o, y = M d. ``refine=False`` keeps (o0, M0) and only
     evaluates the residual and covariance there (for a start that LM would leave along a degenerate valley).
     """
     x = np.asarray(x, float)
@@ -141,58 +194,58 @@ def fit_norm_lm(
     if x.shape[0] < p0.size:
         raise FitError(f"norm fit ({model}) needs ≥ {p0.size} points, got {x.shape[0]}")
 
-    def resid(p: Array, pts: Array, sw: Array) -> Array:
-        o, M = unpack(p)
-        return sw * (np.linalg.norm((pts - o) @ M.T, axis=1) - r)
-
-    def jac(p: Array, pts: Array, sw: Array) -> Array:
+    def resid_jac(p: Array, pts: Array) -> tuple[Array, Array]:
+        """Unweighted residuals ‖M (x − o)‖ − r (N,) and their Jacobian (N, P)."""
+        if model == "full":
+            return _resid_jac_full(p, pts, r)
         o, M = unpack(p)
         d = pts - o
         y = d @ M.T
-        nrm = np.maximum(np.linalg.norm(y, axis=1), 1e-300)
-        u = y / nrm[:, None]
+        ny = np.linalg.norm(y, axis=1)
+        u = y / np.maximum(ny, 1e-300)[:, None]
         cols = [-(u @ M)]
-        if model == "full":
-            cols.append(np.column_stack([u[:, j] * d[:, k] + (u[:, k] * d[:, j] if j != k else 0.0)
-                                         for j, k in zip(*_IU, strict=True)]))
-        elif model == "diag":
+        if model == "diag":
             cols.append(u * d)
         elif model == "bias":
             cols.append(np.einsum("ij,ij->i", u, d)[:, None])
-        return np.hstack(cols) * sw[:, None]
+        return ny - r, np.hstack(cols)
 
-    class _Fixed:
-        def __init__(self, x: Array) -> None:
-            self.x = x
-
-    def solve(p: Array, m: BoolArray) -> object:
+    def solve(p: Array, m: BoolArray) -> Array:
         if not refine:
-            return _Fixed(p)
-        sw = np.sqrt(wt[m])
-        return least_squares(resid, p, jac=jac, args=(x[m], sw), method="lm", x_scale="jac",
-                             max_nfev=max_nfev)
+            return p
+        sw, pts = np.sqrt(wt[m]), x[m]
+
+        def fun(q: Array) -> tuple[Array, Array]:
+            res, J = resid_jac(q, pts)
+            return sw * res, J * sw[:, None]
+
+        return levenberg_marquardt(fun, p, max_iter)
 
     keep = wt > 0
-    sol = solve(p0, keep)
+    px = solve(p0, keep)
     # Outlier rejection only where the data outnumber the parameters well (not on 12 static means).
-    for _ in range(2 if keep.sum() >= 4 * p0.size else 0):
-        res = resid(sol.x, x, np.ones(x.shape[0]))  # type: ignore[attr-defined]
+    for _ in range(rounds if keep.sum() >= 4 * p0.size else 0):
+        res = resid_jac(px, x)[0]
         ref = res[wt > 0]
         mad = 1.4826 * np.median(np.abs(ref - np.median(ref)))
         new_keep = (np.abs(res) <= max(reject_sigma * mad, 1e-12)) & (wt > 0)
         if new_keep.sum() < p0.size or np.array_equal(new_keep, keep):
             break
         keep = new_keep
-        sol = solve(sol.x, keep)  # type: ignore[attr-defined]
-    px = sol.x  # type: ignore[attr-defined]
+        px = solve(px, keep)
     w_k = wt[keep]
-    res = resid(px, x[keep], np.ones(int(keep.sum())))
-    n_eff = float(w_k.sum() ** 2 / (w_k @ w_k))
-    dof = max(1.0, n_eff - p0.size)
-    s2 = float((w_k * res) @ res / w_k.sum() * n_eff / dof)
-    J = jac(px, x[keep], np.sqrt(w_k / w_k.sum() * n_eff))
+    res, J = resid_jac(px, x[keep])
+    if weights is None:
+        s2 = float(res @ res) / max(1, int(keep.sum()) - p0.size)
+        rms = math.sqrt(float(np.mean(res * res)))
+    else:  # the effective sample count (Σw)² / Σw² in place of N
+        n_eff = float(w_k.sum() ** 2 / (w_k @ w_k))
+        dof = max(1.0, n_eff - p0.size)
+        s2 = float((w_k * res) @ res / w_k.sum() * n_eff / dof)
+        J = J * np.sqrt(w_k / w_k.sum() * n_eff)[:, None]
+        rms = float(np.sqrt(np.average(res**2, weights=w_k)))
     try:
-        cov_p = np.linalg.inv(J.T @ J) * s2
+        cov_p: Array = np.asarray(np.linalg.inv(J.T @ J) * s2, float)
     except np.linalg.LinAlgError:
         cov_p = np.full((p0.size, p0.size), np.inf)
     # Express the covariance in the full 9-parameter layout (o, upper triangle of M).
@@ -206,7 +259,7 @@ def fit_norm_lm(
     elif model == "bias":
         T[[3, 6, 8], 3] = 1
     o, M = unpack(px)
-    return NormFit(o, M, T @ cov_p @ T.T, float(np.sqrt(np.average(res**2, weights=w_k))), keep, p0.size)
+    return NormFit(o, M, cov_p if model == "full" else T @ cov_p @ T.T, rms, keep, p0.size)
 
 
 def sphere_bin_weights(u: Array, cell_deg: float = 10.0, per_bin: int | None = None,

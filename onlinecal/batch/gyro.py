@@ -495,19 +495,20 @@ def _kinematic_rows(t: Array, w: Array, v: Array, ok: NDArray[np.bool_], win: in
     starts = starts[good]
     if starts.size == 0:
         return np.zeros((0, 12)), np.zeros(0), starts
-    per = max(1, chunk // win)
+    # Gather each window's own win+1 samples (windows need not be adjacent: where the reference is
+    # unusable they are sparse, and a chunk of windows must not span the samples between them).
+    per = max(1, chunk // (win + 1))
     A = np.empty((starts.size, 3, 12))
+    steps = np.arange(win + 1)
     for c0 in range(0, starts.size, per):
-        st = starts[c0:c0 + per]
-        lo, hi = int(st[0]), int(st[-1]) + win + 1
-        vv, ww = v[lo:hi], w[lo:hi]
-        m = hi - lo
+        idx = starts[c0:c0 + per, None] + steps  # (k, win+1)
+        vv, ww = v[idx], w[idx]
         # v × (G w) = [v]× G w: entry i is Σ_jk ε_ijk v_j Σ_l G_kl w_l → coefficient of G_kl is [v]×_ik w_l
-        vx = np.einsum("ijk,nj->nik", _EPS, vv)  # [v]× per sample (m, 3, 3)
-        blk = np.concatenate([(vx[:, :, :, None] * ww[:, None, None, :]).reshape(m, 3, 9), -vx], axis=2)
-        trap = 0.5 * (blk[1:] + blk[:-1]) * np.diff(t[lo:hi])[:, None, None]
-        c = np.concatenate([np.zeros((1, 3, 12)), np.cumsum(trap, axis=0)])
-        A[c0:c0 + per] = c[st - lo + win] - c[st - lo]
+        vx = np.einsum("ijk,mnj->mnik", _EPS, vv)  # [v]× per sample (k, win+1, 3, 3)
+        k = idx.shape[0]
+        blk = np.concatenate([(vx[..., None] * ww[:, :, None, None, :]).reshape(k, win + 1, 3, 9), -vx], axis=3)
+        dt = np.diff(t[idx], axis=1)[:, :, None, None]
+        A[c0:c0 + per] = (0.5 * (blk[:, 1:] + blk[:, :-1]) * dt).sum(axis=1)  # trapezoid over the window
     y = (v[starts + win] - v[starts]).ravel()
     return A.reshape(-1, 12), y, starts
 

@@ -88,16 +88,39 @@ class Segmentation:
         return bool(np.diff(t).max() > factor * self.max_gap)
 
 
-def moving_std(x: Array, w: int) -> tuple[Array, Array]:
-    """Centered moving mean and std over windows of w samples, (N, k) → (N, k) each, via cumsums."""
-    n = x.shape[0]
+def _moving_std_rows(x: Array, w: int, b0: int, b1: int) -> tuple[Array, Array]:
+    """Rows b0:b1 of :func:`moving_std` (w already within [2, N]), from cumsums over only the samples
+    those rows' windows reach."""
+    n, k = x.shape
+    lo = np.clip(np.arange(b0, b1) - w // 2, 0, n - w)
+    s0, s1 = int(lo[0]), int(lo[-1]) + w
+    # Shifted by the stretch's mean: the variance E[x²] − E[x]² then cancels no large offset (gravity,
+    # a hard-iron field) and the cumsums stay small.
+    ref = np.mean(x[s0:s1], axis=0)
+    xs = np.asarray(x[s0:s1], np.float64) - ref
+    c1 = np.zeros((s1 - s0 + 1, k))
+    c2 = np.zeros((s1 - s0 + 1, k))
+    np.cumsum(xs, axis=0, out=c1[1:])
+    np.cumsum(xs * xs, axis=0, out=c2[1:])
+    j = lo - s0
+    m = (c1[j + w] - c1[j]) / w
+    return m + ref, np.sqrt(np.maximum((c2[j + w] - c2[j]) / w - m**2, 0.0))
+
+
+def moving_std(x: Array, w: int, block: int = 1 << 15) -> tuple[Array, Array]:
+    """Centered moving mean and std over windows of w samples, (N, k) → (N, k) each, via cumsums.
+
+    Worked in blocks of ``block`` output rows, each with its own cumsums over the samples its windows
+    need: the temporaries stay bounded for any log length (before: seven (N, k) arrays at once), and the
+    sums never run over the whole log (no loss of precision in ``c2[b] - c2[a]`` on an hour-long log)."""
+    n, k = x.shape
     w = max(2, min(w, n))
-    c1 = np.cumsum(np.vstack([np.zeros((1, x.shape[1])), x]), axis=0)
-    c2 = np.cumsum(np.vstack([np.zeros((1, x.shape[1])), x * x]), axis=0)
-    lo = np.clip(np.arange(n) - w // 2, 0, n - w)
-    mean = (c1[lo + w] - c1[lo]) / w
-    var = (c2[lo + w] - c2[lo]) / w - mean**2
-    return mean, np.sqrt(np.maximum(var, 0.0))
+    mean = np.empty((n, k))
+    sd = np.empty((n, k))
+    for b0 in range(0, n, block):
+        b1 = min(n, b0 + block)
+        mean[b0:b1], sd[b0:b1] = _moving_std_rows(x, w, b0, b1)
+    return mean, sd
 
 
 def _runs(mask: Array) -> list[tuple[int, int]]:
@@ -110,11 +133,21 @@ def _runs(mask: Array) -> list[tuple[int, int]]:
 WINDOW_S = 0.5
 
 
-def _window_std(data: ImuData, window_s: float) -> tuple[Array, Array, Array]:
-    w = max(5, int(round(window_s * data.imu_rate)))
-    gm, gs = moving_std(data.gyro, w)
-    _, as_ = moving_std(data.acc, w)
-    return gm, np.linalg.norm(gs, axis=1), np.linalg.norm(as_, axis=1)
+def _window_std(data: ImuData, window_s: float, block: int = 1 << 15) -> tuple[Array, Array, Array]:
+    """Moving gyro mean (N, 3) rad/s and the moving std summed over axes (norm) of the gyro (N,) rad/s and
+    the accel (N,) m/s², over ``window_s``; ``block`` rows at a time, so that only these outputs grow with
+    the log (issue 16.5)."""
+    n = data.n_imu
+    w = max(2, min(max(5, int(round(window_s * data.imu_rate))), n))
+    gm = np.empty((n, 3))
+    gs = np.empty(n)
+    as_ = np.empty(n)
+    for b0 in range(0, n, block):
+        b1 = min(n, b0 + block)
+        gm[b0:b1], sd = _moving_std_rows(data.gyro, w, b0, b1)
+        gs[b0:b1] = np.linalg.norm(sd, axis=1)
+        as_[b0:b1] = np.linalg.norm(_moving_std_rows(data.acc, w, b0, b1)[1], axis=1)
+    return gm, gs, as_
 
 
 def noise_floors(logs: list[ImuData], window_s: float = WINDOW_S) -> tuple[float, float]:

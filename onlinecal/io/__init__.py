@@ -6,7 +6,11 @@ only :class:`LogError` for unusable input; the shared drop policy is in :mod:`on
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from onlinecal.io.base import ImuData, LogError, LogReader
 from onlinecal.io.csv import CsvReader, write_csv
@@ -53,12 +57,34 @@ def open_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
                    f"{', '.join(EXTENSIONS)}")
 
 
+_COLUMNS = ("t_imu", "gyro", "acc", "temp", "t_mag", "mag")  # ImuData's sample arrays
+
+
 def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
              mag_scale: float | None = None, max_samples: int = 1 << 16, imu: int = 0) -> ImuData:
     """The whole log as one ImuData (the concatenation of the reader's blocks), warnings, clock-segment
     boundaries, parameters and series included."""
     reader = open_log(path, acc_scale, gyro_scale, mag_scale, imu=imu)
-    data = ImuData.concat(reader.blocks(max_samples), source=str(path))
+    # Joined one array at a time, each list freed once joined: the peak is the log plus one array of it
+    # (ImuData.concat of the blocks would hold the blocks and the joined log at once, twice the log).
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in _COLUMNS}
+    heads = []
+    for b in reader.blocks(max_samples):
+        for k in _COLUMNS:
+            cols[k].append(getattr(b, k))
+        # the block without its samples (fresh empty arrays: a view [:0] would keep the block alive)
+        e1, e3 = np.zeros(0), np.zeros((0, 3))
+        heads.append(replace(b, t_imu=e1, gyro=e3, acc=e3, temp=e1, t_mag=e1, mag=e3))
+        del b
+    data = ImuData.concat(heads, source=str(path))  # warnings, boundaries, params, series
+    del heads
+    joined: dict[str, Any] = {}
+    for k in _COLUMNS:
+        parts = cols.pop(k)
+        joined[k] = np.concatenate(parts).reshape((-1, 3) if k in ("gyro", "acc", "mag") else (-1,)) if parts \
+            else getattr(data, k)
+        del parts
+    data = replace(data, **joined)
     data.warnings = list(reader.warnings)
     return data
 

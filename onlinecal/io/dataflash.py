@@ -1,6 +1,7 @@
 """ArduPilot DataFlash binary logs (``.bin``): read IMU and MAG in bounded blocks, and write minimal logs.
 
-Read through pymavlink's DFReader:
+Read with :mod:`onlinecal.io.dfparse` (our own parser of the DataFlash layout: FMT records, then numpy views
+of the records, one chunk at a time):
 
 * ``IMU`` — TimeUS µs, GyrX/Y/Z rad/s, AccX/Y/Z m/s², T °C; the instance ``imu`` (field ``I``; logs from
   before the ``I`` field name the second and third IMU ``IMU2``/``IMU3``, read as instances 1 and 2).
@@ -18,25 +19,22 @@ Read through pymavlink's DFReader:
 Note that ArduPilot logs IMU and MAG values *after* its own calibration (accel offsets/scales, compass
 offsets and matrices): a calibration fitted on them is relative to the autopilot's.
 
-DFReader maps the file and indexes every message up front (a few bytes per message); the blocks this
-reader builds are bounded as for the other formats. pymavlink reports corrupt stretches by printing;
-that output is kept off the terminal and summed into a warning.
+Memory is bounded whatever the log's length (one chunk of the file and the blocks being built; pymavlink's
+DFReader, used before, indexed every message up front). It decodes what pymavlink's DFReader decodes
+(tests/test_scale_dataflash.py compares them field by field). Bytes that begin no record are skipped up
+to the next record header, as pymavlink does, and summed into one warning.
 """
 
 from __future__ import annotations
 
 import contextlib
-import io
-import os
-import re
-import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.dfparse import DataflashParser, Records
 from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
 HEAD = b"\xa3\x95"
@@ -49,7 +47,6 @@ IMU_FORMAT = ("IMU", "QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,
 MAG_FORMAT = ("MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S")
 _NP = {"Q": "<u8", "q": "<i8", "B": "u1", "b": "i1", "M": "u1", "f": "<f4", "d": "<f8", "I": "<u4", "i": "<i4",
        "H": "<u2", "h": "<i2", "n": "S4", "N": "S16", "Z": "S64"}  # DataFlash format characters
-_SKIPPED = re.compile(r"Skipped (\d+) bad bytes")
 _IMU_FIELDS = ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ")
 _OLD_NAMES = {"IMU2": ("IMU", 1), "IMU3": ("IMU", 2), "MAG2": ("MAG", 1), "MAG3": ("MAG", 2)}
 _READ = ["IMU", "IMU2", "IMU3", "MAG", "MAG2", "MAG3", "PARM", "BAT", "CURR", "CTUN", "RCOU", "ARM", "EV"]
@@ -72,70 +69,6 @@ def calibration_params(params: dict[str, float]) -> dict[str, float]:
                 out[name] = float(v)
     return out
 _MAG_FIELDS = ("MagX", "MagY", "MagZ")
-
-
-@contextlib.contextmanager
-def _captured_output(fd_level: bool = False) -> Iterator[io.StringIO]:
-    """Capture what pymavlink prints. ``fd_level`` also silences file descriptor 2, where the compiled
-    DataFlash indexer writes one line per bad byte; only used around the (non-yielding) constructor."""
-    buf = io.StringIO()
-    saved = None
-    if fd_level:
-        try:
-            sys.stderr.flush()
-            devnull = os.open(os.devnull, os.O_WRONLY)
-        except (OSError, ValueError):
-            devnull = None
-        if devnull is not None:
-            try:
-                saved = os.dup(2)
-                os.dup2(devnull, 2)
-            except OSError:  # no fd 2 to silence: nothing to restore either
-                if saved is not None:
-                    os.close(saved)
-                saved = None
-            finally:
-                os.close(devnull)
-    try:
-        with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-            yield buf
-    finally:
-        if saved is not None:
-            os.dup2(saved, 2)
-            os.close(saved)
-
-
-_GUARDED: type | None = None
-
-
-def _guarded_reader_class() -> type:
-    """pymavlink's ``DFReader_binary`` with a parser that always moves forward.
-
-    A FMT record declaring a message length of 0 bytes (only a corrupt one does: the header alone is 3)
-    makes pymavlink's ``_parse_next`` return a message without advancing, so its readers loop for ever
-    on it. Here such a message is dropped and parsing resumes one byte later, as pymavlink itself does
-    for bytes it cannot parse; ``stalls`` counts them.
-    """
-    global _GUARDED
-    if _GUARDED is None:
-        from pymavlink import DFReader
-
-        class GuardedDFReader(DFReader.DFReader_binary):
-            stalls = 0
-            offset: int  # set by DFReader_binary.__init__ (pymavlink is untyped: mypy cannot infer it)
-
-            def _parse_next(self) -> Any:
-                while True:
-                    start = int(getattr(self, "offset"))  # noqa: B009 - pymavlink's untyped attribute
-                    m = super()._parse_next()
-                    if m is None or int(getattr(self, "offset")) > start:  # noqa: B009
-                        return m
-                    self.stalls += 1
-                    self.offset = start + 1
-                    self.remaining = self.data_len - self.offset
-
-        _GUARDED = GuardedDFReader
-    return _GUARDED
 
 
 class DataflashReader:
@@ -163,215 +96,209 @@ class DataflashReader:
                             limits=self._si_units)
         self.warnings = filt.warnings
         asm = BlockAssembler(self.path, filt.warnings, max_samples, filt)
-        skipped = 0
+        parser = DataflashParser(self.path, set(_READ))
+        acc = _Collect(self.path, self.imu)
+        asm.params = acc.params  # filled as PARM records are read (they come first in a log)
+        s = self.scale
         try:
-            with _captured_output(fd_level=True):
-                dfr = _guarded_reader_class()(self.path, zero_time_base=True)
-        except Exception as e:
-            raise LogError(self.path, f"not a readable DataFlash log: {type(e).__name__}: {e}") from None
-        stalls0 = dfr.stalls  # those of the constructor's own passes over the log are counted again below
-        unindexed = _unindexed_from(dfr)
-        batch = _Batch(self.path, self.imu)
-        asm.params = batch.params  # filled as PARM records are read (they come first in a log)
-        flush_every = max(1, min(max_samples, 1 << 14))
-        try:
-            done = False
-            while not done:
-                # Read a batch with pymavlink's prints captured, then hand it on outside the capture
-                # (never yield while stdout/stderr are redirected).
-                with _captured_output() as out:
-                    done = batch.read(dfr, flush_every)
-                skipped += sum(int(k) for k in _SKIPPED.findall(out.getvalue()))
-                self._flush(batch, filt, asm)
-                yield from asm.pop()
-        finally:
-            with contextlib.suppress(Exception):
-                dfr.data_map.close()
-                dfr.filehandle.close()
-        if unindexed is not None:
-            rest = dfr.data_len - unindexed
-            if batch.n_imu_msg == 0:
-                raise LogError(self.path, f"no IMU messages read: pymavlink's index of the log stops here, {rest} "
-                               f"bytes before the end (a corrupt FMT record?)", f"byte {unindexed}")
-            filt.note(f"pymavlink's index of the log stops at byte {unindexed} (a corrupt FMT record?); the "
-                      f"remaining {rest} bytes were not read")
-        if batch.n_imu_msg == 0:
-            if not _n_records(dfr):
+            for stretch in parser:
+                got = False
+                for recs in stretch:
+                    imu, mag = acc.take(recs)
+                    if imu is not None:
+                        t, a = imu
+                        asm.add(filt.imu(t, a[:, 0:3] * s["gyro"], a[:, 3:6] * s["acc"], a[:, 6]), None)
+                    if mag is not None:
+                        asm.add(None, filt.mag(mag[0], mag[1] * s["mag"]))
+                    got = got or imu is not None or mag is not None
+                if got:  # IMU and MAG of one stretch are added before a block is cut
+                    yield from asm.pop()
+        except OSError as e:
+            raise LogError(self.path, f"cannot read: {e.strerror or e}") from None
+        if parser.stopped_at is not None:
+            rest = parser.data_len - parser.stopped_at
+            if acc.n_imu_msg == 0:
+                raise LogError(self.path, f"no IMU messages read: the index of the log stops here, at a FMT record "
+                               f"declaring a length under 3 bytes (corrupt), {rest} bytes before the end",
+                               f"byte {parser.stopped_at}")
+            filt.note(f"the index of the log stops at byte {parser.stopped_at}, a FMT record declaring a length "
+                      f"under 3 bytes (corrupt); the remaining {rest} bytes were not read")
+        if acc.n_imu_msg == 0:
+            if not parser.n_records:
                 raise LogError(self.path, "no DataFlash record in it (FMT or other); not an ArduPilot .bin log?")
-            raise LogError(self.path, "no IMU messages in the log")
-        if batch.n_imu_read == 0:
-            have = sorted({int(x.split()[-1]) for x in batch.other if x.startswith("IMU")})
+            raise LogError(self.path, "no IMU messages in the log" + (f" ({acc.imu_unusable})"
+                                                                       if acc.imu_unusable else ""))
+        if acc.n_imu_read == 0:
+            have = sorted({int(x.split()[-1]) for x in acc.other if x.startswith("IMU")})
             raise LogError(self.path, f"no IMU instance {self.imu} in the log (instances: "
                            f"{', '.join(map(str, have)) or 'none'}); pick one with --imu N")
-        if batch.other:
-            filt.note(f"read IMU instance {self.imu} and MAG instance 0; ignored {', '.join(sorted(batch.other))}")
-        onboard = calibration_params(batch.params)
+        if acc.other:
+            filt.note(f"read IMU instance {self.imu} and MAG instance 0; ignored {', '.join(sorted(acc.other))}")
+        onboard = calibration_params(acc.params)
         if onboard:
             shown = ", ".join(f"{k}={v:g}" for k, v in list(onboard.items())[:6])
             filt.note(f"the log's parameters hold the firmware's own calibration ({shown}"
                       f"{', ...' if len(onboard) > 6 else ''}): the logged IMU/MAG values are already corrected "
                       f"by it, so a calibration fitted here is a residual on top of it")
-        asm.series = batch.series()
-        if skipped:
-            filt.note(f"skipped {skipped} corrupt bytes that pymavlink could not parse")
-        if dfr.stalls > stalls0:
-            filt.note(f"skipped {dfr.stalls - stalls0} messages whose FMT record declares a length of 0 bytes "
-                      f"(corrupt)")
-        if batch.mag_unusable:
-            filt.note(f"magnetometer not read: {batch.mag_unusable}")
+        asm.series = acc.series()
+        if parser.skipped:
+            zero = (f" ({parser.skipped_zero} of them zero: an erased or pre-allocated stretch)"
+                    if parser.skipped_zero else "")
+            filt.note(f"skipped {parser.skipped} corrupt bytes that begin no DataFlash record{zero}")
+        if acc.mag_unusable:
+            filt.note(f"magnetometer not read: {acc.mag_unusable}")
         asm.add(*filt.flush())
         filt.finish()
         yield from asm.pop(final=True)
 
-    def _flush(self, batch: _Batch, filt: SampleFilter, asm: BlockAssembler) -> None:
-        a = np.asarray(batch.imu, np.float64).reshape(-1, 8)
-        b = np.asarray(batch.mag, np.float64).reshape(-1, 4)
-        batch.imu, batch.mag = [], []
-        s = self.scale
-        asm.add(filt.imu(a[:, 0], a[:, 1:4] * s["gyro"], a[:, 4:7] * s["acc"], a[:, 7]),
-                filt.mag(b[:, 0], b[:, 1:4] * s["mag"]))
 
-
-class _Batch:
-    """Rows of the chosen IMU/MAG instance read from a DFReader since the last flush, and running counts."""
+class _Collect:
+    """The chosen IMU/MAG instance's rows from decoded records, PARM, the optional series, running counts."""
 
     def __init__(self, path: str, imu: int = 0) -> None:
         self.path = path
         self.want = imu
-        self.imu: list[tuple] = []  # (t s, gyro xyz, acc xyz, T)
-        self.mag: list[tuple] = []  # (t s, mag xyz in file units)
         self.other: set[str] = set()  # instances seen and not read
-        self.n_msg = 0
         self.n_imu_msg = 0
         self.n_imu_read = 0
+        self.imu_unusable = ""
         self.mag_unusable = ""  # why MAG messages are not read, once one proved unreadable
         self.params: dict[str, float] = {}
-        self._series: dict[str, list[tuple[float, float]]] = {}
-        self._throttle_from: str | None = None
-        self._armed_from: str | None = None
+        # source -> list of (record offsets, t, value); decided on at the end (see series())
+        self._series: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
 
     def series(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        out = {}
-        for k, rows in self._series.items():
-            a = np.asarray(rows, np.float64).reshape(-1, 2)
-            out[k] = (a[:, 0], a[:, 1])
+        """current (BAT instance 0 and CURR, in log order), throttle (CTUN ThO, else RCOU C3 as 0..1: whichever
+        the log holds first), armed (ARM ArmState, else EV ARMED/DISARMED)."""
+        def joined(*names: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+            parts = [p for n in names for p in self._series.get(n, [])]
+            if not parts:
+                return None
+            o, t, v = (np.concatenate([p[k] for p in parts]) for k in range(3))
+            order = np.argsort(o, kind="stable")
+            return o[order], t[order], v[order]
+
+        out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        cur = joined("BAT", "CURR")
+        if cur is not None:
+            out["current"] = (cur[1], cur[2])
+        ctun, rcou = joined("CTUN"), joined("RCOU")
+        first = [s for s in (ctun, rcou) if s is not None and s[0].size]
+        if first:
+            thr = min(first, key=lambda s: int(s[0][0]))
+            out["throttle"] = (thr[1], thr[2])
+        arm = joined("ARM")
+        ev = joined("EV")
+        if arm is not None and arm[0].size:
+            out["armed"] = (arm[1], arm[2])
+        elif ev is not None and ev[0].size:
+            out["armed"] = (ev[1], ev[2])
         return out
 
-    def _aux(self, typ: str, m: Any) -> None:
-        """PARM and the optional series; a record lacking the fields is skipped (other firmware versions)."""
+    def _fail(self, recs: Records, k: int, why: str, base: str) -> None:
+        """A broken schema (fields come from the FMT record, so every message of this type is alike): IMU is
+        required (LogError), MAG is optional (then not read); ``k`` the first record concerned."""
+        where = f"byte {int(recs.offsets[k]) + recs.fmt.length}, message {int(recs.ordinal[k])}"  # its end
+        problem = (f"{recs.fmt.name} message without a usable field ({why}); its FMT record is corrupt or not "
+                   "ArduPilot's")
+        if base == "IMU":
+            raise LogError(self.path, problem, where)
+        self.mag_unusable = f"{problem}, first at {where}"
+
+    def take(self, recs: Records) -> tuple[tuple[np.ndarray, np.ndarray] | None, tuple[np.ndarray, np.ndarray] | None]:
+        """Rows of ``recs`` for the IMU ((t s, (n, 7) gyro xyz, acc xyz, T)) or the MAG ((t s, (n, 3) file
+        units)) read; None for either when the records are of another type or instance."""
+        f, rows = recs.fmt, recs.rows
+        typ = f.name
+        if typ not in ("IMU", "IMU2", "IMU3", "MAG", "MAG2", "MAG3"):
+            with contextlib.suppress(Exception):  # a damaged optional record never stops the log
+                self._aux(recs)
+            return None, None
+        base, old_inst = _OLD_NAMES.get(typ, (typ, None))
+        if base == "MAG" and self.mag_unusable:
+            return None, None
+        if f.dtype is None:  # not decodable: pymavlink skipped such records as unparseable
+            if base == "IMU":
+                self.imu_unusable = f"{typ} records cannot be decoded: {f.problem}"
+                if "Unsupported format char" in f.problem:
+                    raise LogError(self.path, f"not a readable DataFlash log: {f.problem}", f"byte {f.at}")
+            else:
+                self.mag_unusable = f"{typ} records cannot be decoded: {f.problem}"
+            return None, None
+        if base == "IMU":
+            self.n_imu_msg += rows.size
+        fields = _IMU_FIELDS if base == "IMU" else _MAG_FIELDS
+        names = set(rows.dtype.names or ())
+        tcol = "TimeUS" if "TimeUS" in names else "TimeMS" if "TimeMS" in names else None
+        missing = [c for c in ("I",) if old_inst is None and c in f.extra_columns]
+        missing += [c for c in (*fields,) if c not in names]
+        if tcol is None:
+            missing.insert(0, "TimeUS")
+        if missing or tcol is None:
+            err = "IndexError" if any(c in f.extra_columns for c in missing) else "AttributeError"
+            self._fail(recs, 0, f"{err}: no value for column {missing[0]!r}", base)
+            return None, None
+        t = f.values(rows, tcol) * (1e-6 if tcol == "TimeUS" else 1e-3)
+        if old_inst is not None:
+            inst = np.full(rows.size, old_inst, np.int64)
+        elif "I" in names:
+            iv = f.values(rows, "I")
+            bad = np.flatnonzero(iv != np.round(iv))
+            if bad.size:
+                self._fail(recs, int(bad[0]), f"ValueError: instance I = {iv[bad[0]]!r} is not an integer", base)
+                return None, None
+            inst = iv.astype(np.int64)
+        else:
+            inst = np.zeros(rows.size, np.int64)
+        want = self.want if base == "IMU" else 0
+        mine = inst == want
+        for i in np.unique(inst[~mine]):
+            self.other.add(f"{base} instance {int(i)}")
+        if not mine.any():
+            return None, None
+        vals = np.column_stack([f.values(rows[mine], c) for c in fields])
+        if base == "IMU":
+            self.n_imu_read += int(mine.sum())
+            tc = "T" if "T" in names else "Temp" if "Temp" in names else None
+            temp = f.values(rows[mine], tc) if tc else np.full(int(mine.sum()), np.nan)
+            return (t[mine], np.column_stack([vals, temp])), None
+        return None, (t[mine], vals)
+
+    def _aux(self, recs: Records) -> None:
+        """PARM and the optional series; records lacking the fields are skipped (other firmware versions)."""
+        f, rows = recs.fmt, recs.rows
+        typ = f.name
+        names = set(rows.dtype.names or ()) if f.dtype is not None else set()
         if typ == "PARM":
-            name, value = getattr(m, "Name", None), getattr(m, "Value", None)
-            if isinstance(name, str) and value is not None and np.isfinite(float(value)):
-                self.params[name] = float(value)
+            if {"Name", "Value"} <= names:
+                for name, value in zip(rows["Name"], f.values(rows, "Value"), strict=True):
+                    if np.isfinite(value):
+                        self.params[name.split(b"\0", 1)[0].decode("ascii", errors="replace")] = float(value)
             return
-        t = _time_s(m)
-        if typ in ("BAT", "CURR") and getattr(m, "Curr", None) is not None:
-            if typ == "BAT" and int(getattr(m, "Inst", getattr(m, "Instance", 0)) or 0) != 0:
-                return
-            self._series.setdefault("current", []).append((t, float(m.Curr)))
-        elif typ == "CTUN" and getattr(m, "ThO", None) is not None and self._throttle_from in (None, "CTUN"):
-            self._throttle_from = "CTUN"
-            self._series.setdefault("throttle", []).append((t, float(m.ThO)))
-        elif typ == "RCOU" and getattr(m, "C3", None) is not None and self._throttle_from in (None, "RCOU"):
-            self._throttle_from = "RCOU"
-            self._series.setdefault("throttle", []).append((t, min(max((float(m.C3) - 1000.0) / 1000.0, 0.0),
-                                                                   1.0)))
-        elif typ == "ARM" and getattr(m, "ArmState", None) is not None:
-            if self._armed_from != "ARM":  # ARM is the direct record: it replaces what EV said
-                self._armed_from = "ARM"
-                self._series["armed"] = []
-            self._series["armed"].append((t, float(bool(m.ArmState))))
-        elif typ == "EV" and self._armed_from in (None, "EV") and getattr(m, "Id", None) in (_EV_ARMED,
-                                                                                               _EV_DISARMED):
-            self._armed_from = "EV"
-            self._series.setdefault("armed", []).append((t, float(m.Id == _EV_ARMED)))
-
-    def read(self, dfr: Any, limit: int) -> bool:
-        """Read until ``limit`` rows are held; True when the log has ended."""
-        while len(self.imu) + len(self.mag) < limit:
-            where = f"byte {getattr(dfr, 'offset', '?')}, message {self.n_msg + 1}"
-            try:
-                m = dfr.recv_match(type=_READ)
-            except Exception as e:
-                raise LogError(self.path, f"pymavlink failed: {type(e).__name__}: {e}", where) from None
-            if m is None:
-                return True
-            self.n_msg += 1
-            typ = m.get_type()
-            if typ not in ("IMU", "IMU2", "IMU3", "MAG", "MAG2", "MAG3"):
-                with contextlib.suppress(Exception):  # a damaged optional record never stops the log
-                    self._aux(typ, m)
-                continue
-            base, old_inst = _OLD_NAMES.get(typ, (typ, None))
-            if base == "MAG" and self.mag_unusable:
-                continue
-            try:
-                inst = _instance(m) if old_inst is None else old_inst
-                t = _time_s(m)
-                if base == "IMU":
-                    self.n_imu_msg += 1
-                    if inst == self.want:
-                        self.n_imu_read += 1
-                        temp = float(getattr(m, "T", getattr(m, "Temp", float("nan"))))
-                        self.imu.append((t, *(float(getattr(m, f)) for f in _IMU_FIELDS), temp))
-                    else:
-                        self.other.add(f"IMU instance {inst}")
-                else:
-                    if inst == 0:
-                        self.mag.append((t, *(float(getattr(m, f)) for f in _MAG_FIELDS)))
-                    else:
-                        self.other.add(f"MAG instance {inst}")
-            except Exception as e:  # pymavlink's field access on a corrupt FMT: AttributeError, IndexError, ...
-                # Fields come from the FMT record, so every message of this type is alike: a broken
-                # schema, not one bad message. IMU is required; MAG is optional and is then not read.
-                where = f"byte {getattr(dfr, 'offset', '?')}, message {self.n_msg}"  # the message's end
-                problem = (f"{typ} message without a usable field ({type(e).__name__}: {e}); its FMT record "
-                           f"is corrupt or not ArduPilot's")
-                if base == "IMU":
-                    raise LogError(self.path, problem, where) from None
-                self.mag_unusable = f"{problem}, first at {where}"
-        return False
-
-
-def _unindexed_from(dfr: Any) -> int | None:
-    """The byte where pymavlink's index of the log ends, if message headers follow it (None if not).
-
-    pymavlink's indexer stops at the first FMT record it cannot use (a declared length under 3): what
-    follows is never read, and would otherwise be lost without a word."""
-    try:
-        ends = [int(o[-1]) + int(dfr.formats[t].len) for t, o in enumerate(dfr.offsets)
-                if len(o) and t in dfr.formats]
-        end = max(ends, default=0)
-        if end < dfr.data_len and dfr.data_map.find(HEAD, end) >= 0:
-            return end
-    except Exception:  # an index pymavlink laid out differently: no claim either way
-        return None
-    return None
-
-
-def _n_records(dfr: Any) -> int:
-    """Records pymavlink indexed (any type); -1 if its index is laid out differently."""
-    try:
-        return int(sum(dfr.counts))
-    except Exception:
-        return -1
-
-
-def _time_s(m: Any) -> float:
-    t = getattr(m, "TimeUS", None)
-    if t is not None:
-        return float(t) * 1e-6
-    t = getattr(m, "TimeMS", None)  # logs before TimeUS (ArduPilot < 3.3)
-    if t is None:
-        raise AttributeError("neither TimeUS nor TimeMS")
-    return float(t) * 1e-3
-
-
-def _instance(m: Any) -> int:
-    i = getattr(m, "I", 0)
-    if isinstance(i, float) and not i.is_integer():
-        raise ValueError(f"instance I = {i!r} is not an integer")
-    return int(i)
+        tcol = "TimeUS" if "TimeUS" in names else "TimeMS" if "TimeMS" in names else None
+        if tcol is None:
+            return
+        t = f.values(rows, tcol) * (1e-6 if tcol == "TimeUS" else 1e-3)
+        keep = np.ones(rows.size, bool)
+        if typ in ("BAT", "CURR") and "Curr" in names:
+            if typ == "BAT":
+                ic = "Inst" if "Inst" in names else "Instance" if "Instance" in names else None
+                if ic is not None:
+                    keep = f.values(rows, ic) == 0
+            col, v = typ, f.values(rows, "Curr")
+        elif typ == "CTUN" and "ThO" in names:
+            col, v = typ, f.values(rows, "ThO")
+        elif typ == "RCOU" and "C3" in names:
+            col, v = typ, np.clip((f.values(rows, "C3") - 1000.0) / 1000.0, 0.0, 1.0)
+        elif typ == "ARM" and "ArmState" in names:
+            col, v = typ, (f.values(rows, "ArmState") != 0).astype(float)
+        elif typ == "EV" and "Id" in names:
+            ids = f.values(rows, "Id")
+            keep = (ids == _EV_ARMED) | (ids == _EV_DISARMED)
+            col, v = typ, (ids == _EV_ARMED).astype(float)
+        else:
+            return
+        self._series.setdefault(col, []).append((recs.offsets[keep], t[keep], v[keep]))
 
 
 def _record_dtype(fmt: str, columns: str) -> np.dtype:

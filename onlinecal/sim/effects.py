@@ -38,14 +38,15 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from ..effect_registry import EFFECTS, REGISTRY  # the one vocabulary (names, sensors, inverse, UKF state)
+# the one vocabulary (names, sensors, keys and defaults, inverse, UKF state) and the forward models production
+# shares: production owns them, the simulator consumes them
+from ..effect_registry import AXES, EFFECT_KEYS, EFFECTS, REGISTRY, lever_arm_acceleration
 
 if TYPE_CHECKING:  # runtime import would be circular (sensors imports this module)
     from .sensors import SimContext
 
 Array = NDArray[np.float64]
 
-AXES = ("x", "y", "z")
 UNIT = {"gyro": "rad/s", "accel": "m/s^2", "mag": "mag unit"}
 
 # Default saturation limits: ±125 dps (the smallest gyro range of ICM-20602/BMI088-class parts) and ±2 g.
@@ -391,8 +392,9 @@ class LeverArm(Effect):
 
     @staticmethod
     def acceleration(omega: Array, omega_dot: Array, r: Array) -> Array:
-        """ω̇×r + ω×(ω×r), (N, 3) m/s² for ω (N, 3) rad/s, ω̇ (N, 3) rad/s², r (3,) m."""
-        return np.cross(omega_dot, r) + np.cross(omega, np.cross(omega, r))
+        """ω̇×r + ω×(ω×r), (N, 3) m/s² for ω (N, 3) rad/s, ω̇ (N, 3) rad/s², r (3,) m
+        (:func:`onlinecal.effect_registry.lever_arm_acceleration`)."""
+        return lever_arm_acceleration(omega, omega_dot, r)
 
     def apply(self, ctx: SimContext) -> None:
         m = ctx.motion["accel"]
@@ -440,11 +442,10 @@ EFFECT_CLASSES: dict[str, type[Effect]] = {
 assert tuple(EFFECT_CLASSES) == EFFECTS
 assert all(REGISTRY[n].forward == c.__name__ for n, c in EFFECT_CLASSES.items())
 
-# Keys of each effect and their defaults (None: depends on the sensor, see DEFAULT_LIMIT; axis None = all).
-EFFECT_KEYS: dict[str, dict[str, Any]] = {
-    n: {f.name: f.default for f in fields(c)}  # type: ignore[arg-type]
-    for n, c in EFFECT_CLASSES.items()
-}
+# Keys of each effect and their defaults: the registry's EFFECT_KEYS (None: depends on the sensor, see
+# DEFAULT_LIMIT; axis None = all); every class has exactly those fields and defaults.
+assert {n: {f.name: f.default for f in fields(c)}  # type: ignore[arg-type]
+        for n, c in EFFECT_CLASSES.items()} == EFFECT_KEYS
 _STR_KEYS = ("sensor", "axis")
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from ..batch.ellipsoid import fit_norm_lm
 from ..model import decompose
 from .config import UKFConfig
 from .geometry import rodrigues1, triad, yaw_rotation
@@ -203,86 +204,16 @@ def _ellipsoid_refine(x: Array, o: Array, r: float, c: UKFConfig) -> tuple[Array
     return None
 
 
-_IU = np.triu_indices(3)
-
-
-_JJ, _KK = _IU
-_OFF = (_JJ != _KK).astype(float)
-
-
-def _ell_resid_jac(p: Array, pts: Array) -> tuple[Array, Array]:
-    """Residuals r (N,) = ‖M (x − o)‖ − 1 and their Jacobian (N, 9) for p = (o, upper triangle of M)
-    (:func:`ellipsoid_gn` gives the formulas)."""
-    o = p[:3]
-    M = np.zeros((3, 3))
-    M[_IU] = p[3:]
-    M = M + np.triu(M, 1).T
-    d = pts - o
-    y = d @ M
-    ny = np.sqrt(np.einsum("ij,ij->i", y, y))
-    nv = y / ny[:, None]
-    J = np.empty((pts.shape[0], 9))
-    J[:, :3] = -(nv @ M)
-    J[:, 3:] = nv[:, _JJ] * d[:, _KK] + _OFF * nv[:, _KK] * d[:, _JJ]
-    return ny - 1.0, J
-
-
-def _ell_lm(p: Array, pts: Array, max_iter: int) -> Array:
-    """Levenberg–Marquardt on :func:`_ell_resid_jac` from p (9,), at most ``max_iter`` steps."""
-    lam = 1e-3
-    r, J = _ell_resid_jac(p, pts)
-    cost = float(r @ r)
-    for _ in range(max_iter):
-        A = J.T @ J
-        g = J.T @ r
-        try:
-            step = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
-        except np.linalg.LinAlgError:
-            break
-        p_new = p + step
-        r_new, J_new = _ell_resid_jac(p_new, pts)
-        c_new = float(r_new @ r_new)
-        if np.isfinite(c_new) and c_new < cost:
-            done = cost - c_new < 1e-12 * cost
-            p, r, J, cost = p_new, r_new, J_new, c_new
-            lam = max(lam / 10.0, 1e-12)
-            if done:
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e8:
-                break
-    return p
-
-
 def ellipsoid_gn(x: Array, o0: Array, M0: Array, max_iter: int = 40,
                  reject_sigma: float = 5.0) -> tuple[Array, Array, Array, float]:
-    """Geometric ellipsoid fit ‖M (x − o)‖ = 1 (Zhang et al. eq. 17) by Levenberg–Marquardt with the
-    analytic Jacobian; o (3,) and a symmetric M (its 6 upper-triangle entries) as the batch fit has them.
+    """Geometric ellipsoid fit ‖M (x − o)‖ = 1 (Zhang et al. eq. 17): the batch's fit
+    (:func:`onlinecal.batch.ellipsoid.fit_norm_lm`, Levenberg–Marquardt with the analytic Jacobian; o (3,)
+    and a symmetric M) with unit weights and one outlier rejection at ``reject_sigma`` × MAD, then a refit.
 
-    r_i = ‖y_i‖ − 1 with y_i = M d_i, d_i = x_i − o, n_i = y_i/‖y_i‖: ∂r_i/∂o = −M n_i and
-    ∂r_i/∂M_jk = n_j d_k + n_k d_j (j < k), n_j d_j (j = k). x (N, 3) raw samples; o0, M0 the start (a
-    sphere fit). One outlier rejection at ``reject_sigma`` × MAD, then a refit. Returns (o, M, cov (9, 9)
-    of (o, upper triangle of M) from the Gauss–Newton normal matrix and the residual variance, residual
-    rms). A fixed iteration budget keeps the cost bounded (a few ms) where the data do not carry an
-    ellipsoid; the caller rejects such fits by their covariance.
+    x (N, 3) raw samples; o0, M0 the start (a sphere fit). Returns (o, M, cov (9, 9) of (o, upper triangle
+    of M) from the Gauss–Newton normal matrix and the residual variance, residual rms). A fixed iteration
+    budget (``max_iter``) keeps the cost bounded (a few ms) where the data do not carry an ellipsoid; the
+    caller rejects such fits by their covariance. FitError (a ValueError) under 9 samples.
     """
-    p = _ell_lm(np.concatenate([o0, M0[_IU]]), x, max_iter)
-    keep = np.ones(x.shape[0], bool)
-    if x.shape[0] >= 36:
-        r, _ = _ell_resid_jac(p, x)
-        mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-        keep = np.abs(r) <= max(reject_sigma * mad, 1e-12)
-        if keep.sum() >= 9 and not keep.all():
-            p = _ell_lm(p, x[keep], max_iter)
-    r, J = _ell_resid_jac(p, x[keep])
-    s2 = float(r @ r) / max(1, int(keep.sum()) - 9)
-    try:
-        cov: Array = np.asarray(np.linalg.inv(J.T @ J) * s2, float)
-    except np.linalg.LinAlgError:
-        cov = np.full((9, 9), np.inf)
-    M = np.zeros((3, 3))
-    M[_IU] = p[3:]
-    return p[:3], M + np.triu(M, 1).T, cov, math.sqrt(float(np.mean(r * r)))
-
-
+    f = fit_norm_lm(x, 1.0, o0, M0, reject_sigma=reject_sigma, max_iter=max_iter, rounds=1)
+    return f.o, f.M, f.cov, f.rms

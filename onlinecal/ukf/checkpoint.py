@@ -19,8 +19,9 @@ import numpy as np
 from ..model import Calibration
 from ..specs import SensorSpec
 from .attitude_init import MagCollector
-from .blocks import HoldTracker, Lattice, RailDetector, RestDetector, SampleBuffer
+from .blocks import SampleBuffer
 from .config import UKFConfig
+from .detectors import HoldTracker, Lattice, RailDetector, RestDetector
 from .health import EventLog, NisMonitor, none_to_inf
 from .magstart import MagStart
 from .noise import NoiseModel

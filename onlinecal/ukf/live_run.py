@@ -15,8 +15,6 @@ samples at or before the checkpoint are not fed again, what was lost while nothi
 
 from __future__ import annotations
 
-import contextlib
-import csv
 import json
 import math
 import queue
@@ -28,20 +26,19 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, TextIO
-
-import numpy as np
+from typing import TYPE_CHECKING, Any, TextIO
 
 from ..io.base import ImuData, LogError, split_boundaries
 from ..io.mavlink import MAV_PARAM_TYPE_INT32
 from ..model import Calibration
 from .filter import OnlineCalibrator, UKFConfig
+from .live_files import CHECKPOINT_SCHEMA as CHECKPOINT_SCHEMA  # re-exported
+from .live_files import COUNTERS, TraceCsv, load_checkpoint, status_line, write_atomic
 from .replay import OnlineResult
 
-CHECKPOINT_SCHEMA = "onlinecal.live-checkpoint/1"
-# Link counters that add up over the runs of one calibration (a resumed run continues them).
-_COUNTERS = ("received", "emitted", "lost", "mag", "mag_uncertain", "duplicates", "reordered", "dropped_late",
-             "reconnects", "ack", "interval_requests", "heartbeats", "ignored", "bad_data", "clock_resets")
+if TYPE_CHECKING:
+    from ..io.live import LiveSource
+
 _END = object()  # end of the link reader's queue
 
 
@@ -66,45 +63,6 @@ class LiveResult(OnlineResult):
         return [n for n, r in (self.applied or {}).items() if not r["ok"]]
 
 
-def write_atomic(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` so that a crash at any moment leaves the old or the new file: PATH.tmp,
-    fsync, os.replace, then fsync of the directory (the rename itself made durable)."""
-    from ..files import atomic_write  # the package's one writer (callers here handle its OSError)
-
-    atomic_write(path, text, oserror=True)
-
-
-def load_checkpoint(path: str | Path) -> tuple[dict[str, Any], OnlineCalibrator]:
-    """Read a checkpoint and rebuild its calibrator. LogError(path, one line) when it is unusable."""
-    p = str(path)
-    try:
-        text = Path(p).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise LogError(p, "no such checkpoint") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise LogError(p, f"unreadable checkpoint ({getattr(e, 'strerror', None) or e})") from None
-    try:
-        ck = json.loads(text)
-    except ValueError as e:
-        raise LogError(p, f"not a checkpoint: invalid JSON ({e})") from None
-    if not isinstance(ck, dict) or ck.get("schema") != CHECKPOINT_SCHEMA:
-        got = ck.get("schema") if isinstance(ck, dict) else type(ck).__name__
-        raise LogError(p, f"not a checkpoint (schema {got!r}, expected {CHECKPOINT_SCHEMA!r})")
-    try:
-        st = ck["filter"]
-        n = np.asarray(st["x"], float).size
-        if np.shape(st["P"]) != (n, n):
-            raise ValueError(f"the covariance is {np.shape(st['P'])}, not {n}×{n}")
-        cal = OnlineCalibrator.from_state(st)
-        cal.result()  # every part of the state in use once, here rather than an hour into the run
-        pos = ck["source"]
-        int(pos["last_us"]), int(pos["offset_us"])
-        int(ck["fed"]["imu"])
-    except (KeyError, TypeError, ValueError, IndexError, AttributeError, np.linalg.LinAlgError) as e:
-        raise LogError(p, f"damaged checkpoint ({type(e).__name__}: {e})") from None
-    return ck, cal
-
-
 def _vehicle_params() -> tuple[Callable[[Calibration, str], dict[str, float]], frozenset[str]]:
     """``onlinecal.export.vehicle_params`` and the names of its integer parameters, imported when asked
     for (ImportError names what is missing)."""
@@ -115,52 +73,6 @@ def _vehicle_params() -> tuple[Callable[[Calibration, str], dict[str, float]], f
     from .. import export
 
     return vehicle_params, frozenset(getattr(export, "INT32_PARAMS", ()))
-
-
-class _Trace:
-    """Trace rows appended to a CSV as the run goes (so the checkpoint need not carry them). On resume, rows
-    at or before the last time already in the file are skipped (they were written after the checkpoint)."""
-
-    def __init__(self, path: str | Path | None, resume: bool) -> None:
-        self.path = None if path is None else Path(path)
-        self.fields: list[str] | None = None
-        self.last_t = -math.inf
-        if self.path is not None and resume and self.path.is_file():
-            with self.path.open(newline="") as fh:
-                r = csv.DictReader(fh)
-                self.fields = list(r.fieldnames or []) or None
-                for row in r:
-                    with contextlib.suppress(KeyError, TypeError, ValueError):
-                        self.last_t = max(self.last_t, float(row["t"]))
-        elif self.path is not None:
-            self.path.write_text("")
-
-    def add(self, rows: list[dict[str, float]]) -> None:
-        rows = [r for r in rows if r["t"] > self.last_t]
-        if self.path is None or not rows:
-            return
-        new = self.fields is None
-        if new:
-            self.fields = list(rows[0].keys())
-        with self.path.open("a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=self.fields or [], extrasaction="ignore")
-            if new:
-                w.writeheader()
-            w.writerows(rows)
-        self.last_t = rows[-1]["t"]
-
-
-def _status(link: dict[str, Any], data_s: float, missing: list[str], resumes: int) -> str:
-    got = link["emitted"] + link["lost"]
-    lost_pc = 100.0 * link["lost"] / got if got else 0.0
-    line = (f"onlinecal run: {data_s:7.1f} s of data | received {link['received']}, lost {link['lost']} "
-            f"({lost_pc:.1f} %), duplicates {link['duplicates']}, reordered {link['reordered']}, "
-            f"late {link['dropped_late']}, reconnects {link['reconnects']}")
-    if resumes:
-        line += f", resumes {resumes}"
-    if missing:
-        line += " | still needed: " + "; ".join(missing[:3]) + (" …" if len(missing) > 3 else "")
-    return line
 
 
 def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | None = None,
@@ -196,19 +108,49 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
 
     Raises LogError when the link cannot be opened, the checkpoint is unusable, or no sample arrived.
     """
-    from ..io.live import LiveSource
-
     out = log if log is not None else sys.stderr
+    _check(apply, resume, checkpoint, checkpoint_every_s)
+    exporter = _vehicle_params() if apply else None  # fail before the run, not after it
+    if status_every_s is None:
+        status_every_s = 5.0 if out.isatty() else 30.0
+    ck, cal, duration_s = _start(checkpoint, resume, init, config, duration_s, out)
+    from ..io.live import LiveSource
+    opts = {"timeout_s": idle_timeout_s, **(source_options or {})}
+    src = LiveSource(url, rate_hz=rate_hz, duration_s=duration_s, acc_scale=acc_scale, gyro_scale=gyro_scale,
+                     mag_scale=mag_scale, imu=imu, source_system=source_system, source_component=source_component,
+                     **opts)
+    run = _LiveRun(url, cal, src, ck, checkpoint, rate_hz, duration_s, TraceCsv(trace_out, resume=ck is not None),
+                   transform, out)
+    if ck is not None:
+        try:
+            src.resume_from(ck["source"])
+        except ValueError as e:
+            src.close()
+            raise LogError(str(checkpoint), f"damaged checkpoint ({e})") from None
+    try:
+        run.stream(checkpoint_every_s, status_every_s)
+        result = run.finish(json_out)
+        if apply is not None and exporter is not None:
+            _apply(result, apply, exporter, src, out)
+        return result
+    finally:
+        src.close()
+
+
+def _check(apply: str | None, resume: bool, checkpoint: str | Path | None, checkpoint_every_s: float) -> None:
+    """ValueError for arguments of :func:`run_live` that do not go together."""
     if apply is not None and apply not in ("ardupilot", "px4"):
         raise ValueError(f"apply must be 'ardupilot' or 'px4', got {apply!r}")
     if resume and checkpoint is None:
         raise ValueError("resume needs a checkpoint file")
     if not checkpoint_every_s > 0:
         raise ValueError("checkpoint_every_s must be > 0")
-    exporter = _vehicle_params() if apply else None  # fail before the run, not after it
-    if status_every_s is None:
-        status_every_s = 5.0 if out.isatty() else 30.0
 
+
+def _start(checkpoint: str | Path | None, resume: bool, init: Calibration | None, config: UKFConfig | None,
+           duration_s: float | None, out: TextIO) -> tuple[dict[str, Any] | None, OnlineCalibrator, float | None]:
+    """The checkpoint to resume from (None: a new run), the calibrator, and the run's duration (a resumed
+    run keeps the checkpoint's unless given)."""
     ck: dict[str, Any] | None = None
     if resume and checkpoint is not None and not Path(checkpoint).exists():
         print(f"onlinecal run: {checkpoint}: no checkpoint yet, starting a new run", file=out)
@@ -218,83 +160,102 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
             print("onlinecal run: --init is ignored when resuming (the checkpoint has its own)", file=out)
         if duration_s is None:
             duration_s = ck.get("duration_s")
-    if ck is None:
-        cal = OnlineCalibrator(init, config)
-    base = dict(ck["link"]) if ck else {}
-    resumes = int(base.get("resumes", 0)) + (1 if ck else 0)
-    fed: dict[str, Any] = dict(ck["fed"]) if ck else {"imu": 0, "t_first": None, "t_last": None}
-    trace = _Trace(trace_out, resume=ck is not None)
+        return ck, cal, duration_s
+    return ck, OnlineCalibrator(init, config), duration_s
 
-    opts = dict(source_options or {})
-    opts.setdefault("timeout_s", idle_timeout_s)
-    src = LiveSource(url, rate_hz=rate_hz, duration_s=duration_s, acc_scale=acc_scale, gyro_scale=gyro_scale,
-                     mag_scale=mag_scale, imu=imu, source_system=source_system, source_component=source_component,
-                     **opts)
-    segments: list[dict[str, Any]] = list(ck.get("segments", [])) if ck else []
-    if ck is not None:
-        try:
-            src.resume_from(ck["source"])
-        except ValueError as e:
-            src.close()
-            raise LogError(str(checkpoint), f"damaged checkpoint ({e})") from None
 
-    def link_stats() -> dict[str, Any]:
-        st = dict(src.stats)
-        for k in _COUNTERS:
-            st[k] = int(base.get(k, 0)) + int(st.get(k, 0))
-        st["resumes"] = resumes
+class _LiveRun:
+    """One live run: the link read in its own thread, its blocks fed to the calibrator, checkpoints and
+    status lines on wall-clock timers, the counters and clock segments carried over from a checkpoint."""
+
+    def __init__(self, url: str, cal: OnlineCalibrator, src: LiveSource, ck: dict[str, Any] | None,
+                 checkpoint: str | Path | None, rate_hz: float, duration_s: float | None, trace: TraceCsv,
+                 transform: Callable[[ImuData], ImuData] | None, out: TextIO) -> None:
+        self.url, self.cal, self.src, self.ck, self.checkpoint = url, cal, src, ck, checkpoint
+        self.rate_hz, self.duration_s, self.trace, self.transform, self.out = rate_hz, duration_s, trace, transform, out
+        self.base: dict[str, Any] = dict(ck["link"]) if ck else {}
+        self.resumes = int(self.base.get("resumes", 0)) + (1 if ck else 0)
+        self.fed: dict[str, Any] = dict(ck["fed"]) if ck else {"imu": 0, "t_first": None, "t_last": None}
+        self.segments: list[dict[str, Any]] = list(ck.get("segments", [])) if ck else []
+        self.n_ckpt = 0
+        self.pos_fed: dict[str, Any] | None = ck["source"] if ck else None  # source position of the last block fed
+        self.stopped: list[int] = []
+        self.t0 = time.perf_counter()
+
+    def link_stats(self) -> dict[str, Any]:
+        st = dict(self.src.stats)
+        for k in COUNTERS:
+            st[k] = int(self.base.get(k, 0)) + int(st.get(k, 0))
+        st["resumes"] = self.resumes
         return st
 
-    n_ckpt = 0
-    pos_fed: dict[str, Any] | None = ck["source"] if ck else None  # source position of the last block fed
+    def data_s(self) -> float:
+        fed = self.fed
+        return float(fed["t_last"] - fed["t_first"]) if fed["t_first"] is not None else 0.0
 
-    def save_checkpoint() -> None:
-        nonlocal n_ckpt
-        pos = pos_fed
-        if checkpoint is None or pos is None:
+    def save_checkpoint(self) -> None:
+        pos = self.pos_fed
+        if self.checkpoint is None or pos is None:
             return
-        trace.add(cal.trace_rows(clear=True))  # rows go to the CSV, not into every checkpoint
+        self.trace.add(self.cal.trace_rows(clear=True))  # rows go to the CSV, not into every checkpoint
         payload = {"schema": CHECKPOINT_SCHEMA, "written": datetime.now(UTC).isoformat(),
-                   "url": url, "rate_hz": rate_hz, "duration_s": duration_s, "source": pos,
-                   "link": link_stats(), "fed": fed, "segments": segments, "filter": cal.get_state()}
-        write_atomic(checkpoint, json.dumps(payload))
-        n_ckpt += 1
+                   "url": self.url, "rate_hz": self.rate_hz, "duration_s": self.duration_s, "source": pos,
+                   "link": self.link_stats(), "fed": self.fed, "segments": self.segments,
+                   "filter": self.cal.get_state()}
+        write_atomic(self.checkpoint, json.dumps(payload))
+        self.n_ckpt += 1
 
-    # Ctrl-C / SIGTERM end the stream; the run then finishes normally (flush, result, checkpoint).
-    stopped: list[int] = []
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        # Ctrl-C / SIGTERM end the stream; the run then finishes normally (flush, result, checkpoint).
+        self.stopped.append(signum)
+        self.src.stop()
 
-    def on_signal(signum: int, frame: Any) -> None:
-        stopped.append(signum)
-        src.stop()
-
-    old: dict[signal.Signals, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            old[sig] = signal.signal(sig, on_signal)
-    print(f"onlinecal run: link open on {url}" + (f", resumed from {checkpoint}" if ck else "")
-          + " (Ctrl-C ends the run with a result)", file=out, flush=True)
-    # The link is read in its own thread: the socket is drained while the filter computes or a checkpoint
-    # is fsync'ed, so a stall here costs memory (the queue), never packets (a full kernel buffer).
-    q: queue.Queue[Any] = queue.Queue()
-
-    def read_link() -> None:
+    def _read_link(self, q: queue.Queue[Any]) -> None:
         try:
-            for block in src.blocks():
-                q.put((block, src.position()))  # the position as of this very block
+            for block in self.src.blocks():
+                q.put((block, self.src.position()))  # the position as of this very block
         except BaseException as e:  # handed to the main thread, which raises it
             q.put(e)
         finally:
             q.put(_END)
 
-    reader = threading.Thread(target=read_link, name="onlinecal-link", daemon=True)
-    t0 = time.perf_counter()
-    now = time.monotonic()
-    next_ckpt = now + checkpoint_every_s
-    next_status = now + status_every_s if status_every_s > 0 else math.inf
-    dirty = False
-    try:
-        reader.start()
+    def _take(self, block: ImuData, pos: dict[str, Any]) -> bool:
+        """Feed one block of the link (a vehicle clock restart inside it starts a new log); True when it
+        held samples (the checkpoint is then out of date)."""
+        if not (block.n_imu or block.n_mag):
+            return False
+        self.segments += [dict(b) for b in block.boundaries]
+        for new_segment, piece in split_boundaries(block):
+            if new_segment:
+                self.cal.new_log()  # a vehicle reboot: the attitude restarts, the calibration stays
+            self.cal.feed(self.transform(piece) if self.transform is not None else piece)
+        self.pos_fed = pos
+        if block.n_imu:
+            self.fed["imu"] += block.n_imu
+            if self.fed["t_first"] is None:
+                self.fed["t_first"] = float(block.t_imu[0])
+            self.fed["t_last"] = float(block.t_imu[-1])
+        return True
+
+    def stream(self, checkpoint_every_s: float, status_every_s: float) -> None:
+        """Read the link until it ends (duration, idle timeout, Ctrl-C / SIGTERM), feeding every block."""
+        old: dict[signal.Signals, Any] = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                old[sig] = signal.signal(sig, self._on_signal)
+        print(f"onlinecal run: link open on {self.url}" + (f", resumed from {self.checkpoint}" if self.ck else "")
+              + " (Ctrl-C ends the run with a result)", file=self.out, flush=True)
+        # The link is read in its own thread: the socket is drained while the filter computes or a checkpoint
+        # is fsync'ed, so a stall here costs memory (the queue), never packets (a full kernel buffer).
+        q: queue.Queue[Any] = queue.Queue()
+        reader = threading.Thread(target=self._read_link, args=(q,), name="onlinecal-link", daemon=True)
+        self.t0 = time.perf_counter()
+        now = time.monotonic()
+        next_ckpt = now + checkpoint_every_s
+        next_status = now + status_every_s if status_every_s > 0 else math.inf
+        dirty = False
         try:
+            reader.start()
             while True:
                 try:
                     item = q.get(timeout=0.2)
@@ -304,69 +265,64 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
                     break
                 if isinstance(item, BaseException):
                     raise item
-                if item is not None:
-                    block, pos = item
-                    if block.n_imu or block.n_mag:
-                        segments += [dict(b) for b in block.boundaries]
-                        for new_segment, piece in split_boundaries(block):
-                            if new_segment:
-                                cal.new_log()  # a vehicle reboot: the attitude restarts, the calibration stays
-                            cal.feed(transform(piece) if transform is not None else piece)
-                        pos_fed, dirty = pos, True
-                        if block.n_imu:
-                            fed["imu"] += block.n_imu
-                            if fed["t_first"] is None:
-                                fed["t_first"] = float(block.t_imu[0])
-                            fed["t_last"] = float(block.t_imu[-1])
+                if item is not None and self._take(*item):
+                    dirty = True
                 now = time.monotonic()
                 if dirty and now >= next_ckpt:
-                    save_checkpoint()
+                    self.save_checkpoint()
                     dirty = False
                     next_ckpt = now + checkpoint_every_s
                 if now >= next_status:
-                    data_s = (fed["t_last"] - fed["t_first"]) if fed["t_first"] is not None else 0.0
-                    print(_status(link_stats(), data_s, cal.missing_motion(), resumes), file=out, flush=True)
+                    print(status_line(self.link_stats(), self.data_s(), self.cal.missing_motion(), self.resumes),
+                          file=self.out, flush=True)
                     next_status = now + status_every_s
         finally:
-            src.stop()
+            self.src.stop()
             reader.join(5.0)
             for sig, h in old.items():
                 signal.signal(sig, h)
-        if fed["imu"] == 0:
-            raise LogError(url, "no RAW_IMU sample received: no calibration written")
+
+    def finish(self, json_out: str | Path | None) -> LiveResult:
+        """After the stream: flush the filter, write the calibration JSON, the last checkpoint and trace
+        rows, and the final status line; the result. LogError when no sample arrived."""
+        cal = self.cal
+        if self.fed["imu"] == 0:
+            raise LogError(self.url, "no RAW_IMU sample received: no calibration written")
         cal.flush()
-        wall = time.perf_counter() - t0
+        wall = time.perf_counter() - self.t0
         res_cal = cal.result()
-        stats = link_stats()
-        stats["stop_reason"] = "interrupted" if stopped else src.stats["stop_reason"]
-        online = {**res_cal.meta.get("online", {}), "link": {k: stats[k] for k in (*_COUNTERS, "resumes")}}
-        if segments:
-            online["segments"] = [dict(b) for b in segments]
+        stats = self.link_stats()
+        stats["stop_reason"] = "interrupted" if self.stopped else self.src.stats["stop_reason"]
+        online = {**res_cal.meta.get("online", {}), "link": {k: stats[k] for k in (*COUNTERS, "resumes")}}
+        if self.segments:
+            online["segments"] = [dict(b) for b in self.segments]
         res_cal = res_cal.replace(meta={**res_cal.meta, "online": online})  # calibrations are immutable
         if json_out is not None:
             write_atomic(json_out, res_cal.to_json() + "\n")
-        save_checkpoint()
-        trace.add(cal.trace_rows(clear=True))
-        data_s = (fed["t_last"] - fed["t_first"]) if fed["t_first"] is not None else 0.0
-        print(_status(stats, data_s, cal.missing_motion(), resumes), file=out, flush=True)
+        self.save_checkpoint()
+        self.trace.add(cal.trace_rows(clear=True))
+        data_s = self.data_s()
+        print(status_line(stats, data_s, cal.missing_motion(), self.resumes), file=self.out, flush=True)
         result = LiveResult(res_cal, list(cal.events), cal.nis_summary(), cal.observability(),
-                            cal.missing_motion(), [], int(fed["imu"]), wall, data_s, None, link=stats,
-                            stop_reason=stats["stop_reason"], checkpoints=n_ckpt, resumes=resumes,
-                            warnings=list(src.warnings))
-        result.boundaries = [dict(b) for b in segments]
-        if apply is not None and exporter is not None:
-            vehicle_params, int_names = exporter
-            result.apply_format = apply
-            try:
-                params = vehicle_params(res_cal, apply)
-            except ValueError as e:  # export.ExportError: not expressible in the firmware's parameters
-                result.apply_error = f"the calibration cannot be set as {apply} parameters: {e}"
-                result.applied = {}
-                return result
-            print(f"onlinecal run: setting {len(params)} {apply} parameters on the vehicle", file=out, flush=True)
-            types = {n: MAV_PARAM_TYPE_INT32 for n in params if n in int_names}
-            result.applied = src.set_params(params, types=types, bytewise=apply == "px4")
+                            cal.missing_motion(), [], int(self.fed["imu"]), wall, data_s, None, link=stats,
+                            stop_reason=stats["stop_reason"], checkpoints=self.n_ckpt, resumes=self.resumes,
+                            warnings=list(self.src.warnings))
+        result.boundaries = [dict(b) for b in self.segments]
         return result
-    finally:
-        src.close()
 
+
+def _apply(result: LiveResult, apply: str, exporter: tuple[Callable[[Calibration, str], dict[str, float]],
+           frozenset[str]], src: LiveSource, out: TextIO) -> None:
+    """Set the result's calibration as ``apply`` ('ardupilot' | 'px4') parameters on the vehicle and record
+    each parameter's confirmation (or why the calibration cannot be expressed) in ``result``."""
+    vehicle_params, int_names = exporter
+    result.apply_format = apply
+    try:
+        params = vehicle_params(result.calibration, apply)
+    except ValueError as e:  # export.ExportError: not expressible in the firmware's parameters
+        result.apply_error = f"the calibration cannot be set as {apply} parameters: {e}"
+        result.applied = {}
+        return
+    print(f"onlinecal run: setting {len(params)} {apply} parameters on the vehicle", file=out, flush=True)
+    types = {n: MAV_PARAM_TYPE_INT32 for n in params if n in int_names}
+    result.applied = src.set_params(params, types=types, bytewise=apply == "px4")

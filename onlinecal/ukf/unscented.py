@@ -129,26 +129,7 @@ def update(Y: Array, x_pred: Array, P_pred: Array, meas: list[Measurement], Wm: 
     k_gate = [k for k, s in enumerate(names) if s != "rest"]
     nis_all = _block_nis(S_zz, nu, k_gate, len(names))
     res = UpdateResult(x_pred, P_pred)
-    keep = None
-    for k in k_gate:
-        s = names[k]
-        sl = slice(3 * k, 3 * k + 3)
-        nis = nis_all[k]
-        gate = gating.gates[s]
-        if s == "accel" and not gating.static and nis > gate:
-            if keep is None:
-                keep = np.ones(z.size, bool)
-            keep[sl] = False
-            res.nis.append((s, nis, "drop"))
-            continue
-        res.nis.append((s, nis, "soft" if nis > gate else "ok"))
-        if nis > gate:
-            S_zz[sl, sl] += np.diag(r_diag[sl] * (nis / gate - 1))
-        if want_post:
-            Sk = S_zz[sl, sl]
-            A = Sk - np.diag(r_diag[sl])
-            AS = np.linalg.solve(Sk, A).T  # A S⁻¹ (S, A symmetric)
-            res.post[s] = (z_pred[sl] + AS @ nu[sl], A - AS @ A)
+    keep = _gate(res, names, nis_all, gating, S_zz, r_diag, z_pred, nu, want_post)
     S_gain = S_zz
     if damp > 0:
         S_gain = S_zz.copy()
@@ -167,6 +148,37 @@ def update(Y: Array, x_pred: Array, P_pred: Array, meas: list[Measurement], Wm: 
     KPzx = K @ Pxz.T
     res.P = P_pred - KPzx - KPzx.T + (K @ S_zz) @ K.T
     return res
+
+
+def _gate(res: UpdateResult, names: list[str], nis_all: list[float], gating: Gating, S_zz: Array, r_diag: Array,
+          z_pred: Array, nu: Array, want_post: bool) -> NDArray[np.bool_] | None:
+    """Chi-square gate of each gated 3-block of the stacked measurement (all but "rest"), recorded in
+    ``res.nis`` as (sensor, NIS, "ok" | "soft" | "drop"): a moving accel block over its gate is dropped, any
+    other over its gate has its R inflated in ``S_zz`` (in place) to the gate's size. With ``want_post``,
+    ``res.post`` gets each gated block's linearised posterior (see :func:`update`). Returns the mask of the
+    measurement rows kept (None: all)."""
+    keep = None
+    for k, s in enumerate(names):
+        if s == "rest":
+            continue
+        sl = slice(3 * k, 3 * k + 3)
+        nis = nis_all[k]
+        gate = gating.gates[s]
+        if s == "accel" and not gating.static and nis > gate:
+            if keep is None:
+                keep = np.ones(nu.size, bool)
+            keep[sl] = False
+            res.nis.append((s, nis, "drop"))
+            continue
+        res.nis.append((s, nis, "soft" if nis > gate else "ok"))
+        if nis > gate:
+            S_zz[sl, sl] += np.diag(r_diag[sl] * (nis / gate - 1))
+        if want_post:
+            Sk = S_zz[sl, sl]
+            A = Sk - np.diag(r_diag[sl])
+            AS = np.linalg.solve(Sk, A).T  # A S⁻¹ (S, A symmetric)
+            res.post[s] = (z_pred[sl] + AS @ nu[sl], A - AS @ A)
+    return keep
 
 
 def _block_nis(S_zz: Array, nu: Array, k_gate: list[int], m: int) -> list[float]:

@@ -1,0 +1,203 @@
+"""Detectors that run on the raw data alone: the value lattice of a log, the ADC rail, rests, held readings.
+
+Each detector keeps its own small state (a dataclass, so the checkpoint saves it field by field) and returns
+flags and events; the filter decides what to do with them. They read the block statistics of
+:mod:`.blocks`, never the filter state.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from .blocks import Blocks
+
+Array = NDArray[np.float64]
+
+
+def value_lattice(v: Array) -> float:
+    """The quantum q of a sensor's values when every value is an integer multiple of it, else 0.
+
+    v (N, 3) raw readings. q is the smallest step between distinct values on any axis; it counts only
+    if all values are multiples of it to 1e-6 (floats from integer counts times a unit factor are).
+    """
+    v = v[np.all(np.isfinite(v), axis=1)]
+    if v.shape[0] < 8:
+        return 0.0
+    steps = np.concatenate([np.diff(np.unique(v[:, k])) for k in range(3)])
+    steps = steps[steps > 0]
+    if not steps.size:
+        return 0.0
+    q = float(steps.min())
+    if q <= 1e-9 * max(float(np.abs(v).max()), 1e-300):
+        return 0.0
+    k = v / q
+    return q if float(np.max(np.abs(k - np.round(k)))) < 1e-6 else 0.0
+
+
+def _runs(col: Array, carry: tuple[float, int] | None) -> tuple[Array, Array]:
+    """Starts and lengths of the runs of identical values in col (N,); the first run continues ``carry``
+    (value, length) from the previous block when the value is the same."""
+    starts = np.concatenate([[0], np.flatnonzero(col[1:] != col[:-1]) + 1])
+    lens = np.diff(np.concatenate([starts, [col.size]]))
+    if carry is not None and col[0] == carry[0]:
+        lens[0] += carry[1]
+    return starts, lens
+
+
+@dataclass
+class RailDetector:
+    """The ADC rail of gyro and accel, learnt from the data. A rail is ``rail_run`` identical readings in a
+    row (runs carry over block boundaries) at a magnitude of at least ``rail_min``: noise makes a reading
+    that is not clipped change within a few samples. Once learnt, any reading at the rail counts as
+    clipped. State: the learnt rail per sensor and axis, the open runs, whether a clipped stretch is on."""
+
+    rail: dict[str, list[float]] = field(default_factory=dict)
+    run: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
+    clip_on: dict[str, bool] = field(default_factory=lambda: {"gyro": False, "accel": False, "mag": False})
+
+    def check(self, w: Array, a: Array, w_absmax: Array, a_absmax: Array, rail_min: dict[str, float],
+              rail_run: int) -> tuple[dict[str, bool], list[tuple[str, str]]]:
+        """Which sensors read at their rail in this block (w, a (L, 3) raw; ``*_absmax`` (3,) the block's
+        largest |reading| per axis), and the events (kind, detail) at the start of a clipped stretch."""
+        out = {"mag": False}
+        events: list[tuple[str, str]] = []
+        for s, v, amax in (("gyro", w, w_absmax), ("accel", a, a_absmax)):
+            rail = self.rail.get(s)
+            hit = rail is not None and bool(np.any(amax >= np.asarray(rail) * (1 - 1e-9)))
+            if float(amax.max()) < rail_min[s]:
+                self.run.pop(s, None)
+            else:
+                carry = self.run.get(s)
+                new_carry = []
+                for k in range(3):
+                    col = v[:, k]
+                    starts, lens = _runs(col, None if carry is None else carry[k])
+                    new_carry.append((float(col[-1]), int(lens[-1])))
+                    i = int(np.argmax(lens))
+                    val = abs(float(col[starts[i]]))
+                    if lens[i] >= rail_run and val >= rail_min[s]:
+                        r = self.rail.setdefault(s, [math.inf] * 3)
+                        r[k] = min(r[k], val)
+                        hit = True
+                self.run[s] = new_carry
+            if hit and not self.clip_on[s]:
+                what = ("attitude restarted, the block's updates skipped" if s == "gyro"
+                        else "its update skipped while clipped")
+                events.append(("saturation", f"{s} at its rail ±{np.round(self.rail[s], 4).tolist()}: {what}"))
+            self.clip_on[s] = hit
+            out[s] = hit
+        return out, events
+
+
+@dataclass
+class RestDetector:
+    """Rest from raw data: gyro, accel and mag still (within their noise) for ``rest_blocks`` blocks.
+
+    Still: per-axis spread inside the block below k σ and the change of the block mean against the
+    previous block below 2k σ √(2/L). Needs no calibration; a constant-rate turn about the vertical without
+    a magnetometer cannot be told from rest (nothing measures it). State: the previous block's means, the
+    count of still blocks in a row, whether the last block was still."""
+
+    prev_means: tuple[Any, ...] | None = None
+    count: int = 0
+    still: bool = False
+
+    def reset(self) -> None:
+        """A new log, a gap: the previous means no longer compare."""
+        self.prev_means = None
+        self.count = 0
+
+    def update(self, B: Blocks, b: int, n: dict[str, float], k: float, rest_blocks: int) -> bool:
+        """Judge block ``b`` of ``B`` with the per-sample noise σ ``n``; True once in a rest."""
+        L = int(B.hi[b] - B.lo[b])
+        n_m = int(B.mhi[b] - B.mlo[b])
+        gm, am = B.w_mean[b], B.a_mean[b]
+        mm = B.m_mean[b] if n_m else None
+        sg, sa = n["gyro"], n["accel"]
+        still = L >= 3 and float(B.w_std[b].max()) < k * sg and float(B.a_std[b].max()) < k * sa
+        prev = self.prev_means
+        if prev is not None and still:
+            d = math.sqrt(2.0 / L)
+            still = (float(np.abs(gm - prev[0]).max()) < 2 * k * sg * d
+                     and float(np.abs(am - prev[1]).max()) < 2 * k * sa * d)
+            if still and mm is not None and prev[2] is not None:
+                still = float(np.abs(mm - prev[2]).max()) < 2 * k * n["mag"] * math.sqrt(2.0 / n_m)
+        self.prev_means = (gm, am, mm if mm is not None else (prev[2] if prev is not None else None))
+        self.count = self.count + 1 if still else 0
+        self.still = still
+        return self.count >= rest_blocks
+
+
+@dataclass
+class HoldTracker:
+    """Whether the accel / mag reading of a block is *held* (its spread within the noise, on a re-quantised
+    lattice) and whether it is the same hold as the previous block's. A new hold needs a fresh hold-offset
+    state (a fresh quantisation error); :meth:`flags` says which."""
+
+    held: dict[str, bool] = field(default_factory=lambda: {"accel": False, "mag": False})
+
+    def flags(self, B: Blocks, b: int, n: dict[str, float], q: dict[str, Any], prev: tuple[Any, ...] | None,
+              sensors: tuple[str, ...]) -> tuple[dict[str, bool], list[str], bool]:
+        """Held flags of block ``b``, the sensors whose hold offset restarts, and whether a held reading
+        started anew. ``prev``: the previous block's means (:attr:`RestDetector.prev_means`, read before
+        the rest detector sees this block); ``sensors``: those with hold states; ``q`` the lattices."""
+        out = {"accel": False, "mag": False}
+        resets: list[str] = []
+        new = False
+        if not sensors:
+            return out, resets, new
+        cnt = {"accel": int(B.hi[b] - B.lo[b]), "mag": int(B.mhi[b] - B.mlo[b])}
+        for s, mean, std, pi in (("accel", B.a_mean[b], B.a_std[b], 1), ("mag", B.m_mean[b], B.m_std[b], 2)):
+            if s not in sensors or cnt[s] < 2:
+                self.held[s] = False
+                continue
+            qs = q.get(s, 0.0)
+            held = bool(np.all(std <= 2.0 * n[s] + 0.5 * qs))
+            same = (held and self.held[s] and prev is not None and prev[pi] is not None
+                    and bool(np.all(np.abs(mean - prev[pi]) < qs + 3 * n[s] * math.sqrt(2.0 / cnt[s]))))
+            if not same:
+                resets.append(s)
+                new = new or held
+            self.held[s] = held
+            out[s] = held
+        return out, resets, new
+
+
+@dataclass
+class Lattice:
+    """The value lattice of the current log per sensor (``q``: quantum, 0: none; ``<sensor>_requant``: a
+    re-quantisation by the format, set by the filter), detected on its first samples; the mag's once 16
+    of its samples are in (``mag_buf``, also the raw field's scale until then). None until a log has started."""
+
+    q: dict[str, Any] | None = None
+    mag_buf: list[list[float]] = field(default_factory=list)
+
+    def detect(self, w: Array, a: Array, m: Array) -> tuple[str, ...]:
+        """Lattices of the first samples w, a (and m, if 16 or more); the sensors found."""
+        self.q = {"gyro": value_lattice(w), "accel": value_lattice(a)}
+        self.mag_buf = m.tolist()
+        if m.shape[0] >= 16:
+            self.q["mag"] = value_lattice(m)
+        return tuple(s for s in ("gyro", "accel", "mag") if s in self.q)
+
+    def settle(self) -> None:
+        """Drop the mag samples once its lattice is known (after the filter has used them for the unit)."""
+        if self.q is not None and "mag" in self.q:
+            self.mag_buf = []
+
+    def late_mag(self, m: Array) -> bool:
+        """Collect mag samples m (M, 3) until 16 are in; True when the mag's lattice was just found (the
+        samples stay until :meth:`settle`)."""
+        if self.q is None or "mag" in self.q or not m.shape[0]:
+            return False
+        self.mag_buf += m.tolist()
+        if len(self.mag_buf) < 16:
+            return False
+        self.q["mag"] = value_lattice(np.asarray(self.mag_buf))
+        return True

@@ -1,0 +1,250 @@
+"""The filter step of the online calibrator: predict over a block and update (motion), or the rest update.
+
+:func:`step` decides per block (noise monitor, hold offsets, rest detector) between :func:`motion_step`
+(sigma points propagated through the block, :mod:`.predict`; one joint update with the block-mean accel and
+mag, :func:`.measurements.motion_measurements`) and :func:`rest_step` (the rest's running means as one
+measurement on the state the rest began with, :mod:`.rest`). :func:`gated_update` is
+:func:`.unscented.update` with the filter's gates and NIS bookkeeping; :func:`commit` takes the posterior
+(attitude fold, USQUE) or declares a divergence.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..model import SENSORS
+from . import divergence
+from .attitude_init import fold_attitude
+from .blocks import Blocks
+from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
+from .layout import ATT, SENSOR_SLICE, index
+from .magdisturb import nis_in_order
+from .measurements import Offsets, gyro_offsets, motion_measurements, rest_measurements
+from .outputs import temp_regressor, trace_row
+from .predict import block_process_noise, propagate_sigma_points
+from .propagate import sensor_models
+from .rest import RestAccumulator
+from .start import calibrated, mag_block
+from .unscented import Gating, Measurement, UpdateResult
+from .vehicle import VEHICLE_NOTE, rest_noise, vehicle_accel_var
+
+if TYPE_CHECKING:
+    from .filter import OnlineCalibrator
+
+Array = NDArray[np.float64]
+
+
+def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T_all: Array, tm_all: Array,
+         m_all: Array, clip: dict[str, bool]) -> None:
+    """One UKF step over block ``b`` of ``B``: IMU samples [lo, hi) of the buffers t (s), a (m/s²),
+    T (°C) (the gyro enters through ``B``) and mag samples [mlo, mhi) of tm, m: a rest step inside a
+    rest, else predict + update."""
+    c = cal.config
+    i, j, ml, mh = int(B.lo[b]), int(B.hi[b]), int(B.mlo[b]), int(B.mhi[b])
+    t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
+    tl = float(t[-1])
+    use_mag, mag_changed = mag_block(cal, tm_all[ml:mh], m_all[ml:mh], tl)
+    use_mag = cal._magd.gate(use_mag, cal.x, cal.sigma(), m_all[ml:mh], a, tl, c.gravity, cal._event,
+                             nis_in_order(cal._nis.stats, cal._nis.band()[1]))  # a magnetic disturbance
+    spec = cal._spec_noise()
+    q = cal._lat.q or {}
+    for kind, detail in cal._noise.monitor_all({s: float(B.var3[s][b]) for s in SENSORS}, spec, q,
+                                               c.noise_tau_blocks, c.noise_high, c.noise_low):
+        cal._event(kind, detail, tl)
+    n = cal._noise.noise(spec, q)
+    held, resets, cal._hold_new = cal._holds.flags(B, b, n, q, cal._rest_det.prev_means,
+                                                   tuple(cal.lay.hold_slice))
+    for s in resets:
+        cal._reset_hold(s)
+    zero_rate = cal._rest_det.update(B, b, vehicle_rest_noise(cal, B, b, n, tl), c.rest_k,
+                                     c.rest_blocks) and cal._rest_det.still
+    acc = cal._rest_acc
+    if acc is not None and (not zero_rate or cal._hold_new or held != acc.held or mag_changed
+                            or use_mag != acc.use_mag):
+        cal._end_rest()
+    if zero_rate:
+        rest_step(cal, B, b, t, T, n, held, use_mag, clip)
+    else:
+        motion_step(cal, B, b, t, a, T, n, held, use_mag, clip)
+
+
+def offsets(cal: OnlineCalibrator, sensor: str, held: bool) -> Offsets:
+    """The raw-reading offsets of ``sensor`` in the state: hold offset (if ``held``), extensions."""
+    ext = cal.lay.ext_slice
+    return Offsets(hold=cal.lay.hold_slice.get(sensor) if held else None,
+                   temp=ext.get(f"temperature_bias:{sensor}"),
+                   gsens=ext.get("g_sensitivity") if sensor == "gyro" else None)
+
+
+def temp_reg(cal: OnlineCalibrator, T: Array) -> Array:
+    """Regressor T − T0 (°C) of the temperature extensions; 0 where the log has no temperature."""
+    reg, cal._T0 = temp_regressor(T, cal._T0)
+    return reg
+
+
+def has_temp(cal: OnlineCalibrator) -> bool:
+    return any(e.startswith("temperature_bias") for e in cal.lay.ext_slice)
+
+
+def vehicle_rest_noise(cal: OnlineCalibrator, B: Blocks, b: int, n: dict[str, float], tl: float) -> dict[str, float]:
+    """Feed the vehicle detector (:mod:`.vehicle`) the block's accel vibration; the noise the rest test
+    judges against: on a vehicle the spec's, not the vibration-raised level (a vibrating vehicle is
+    not at rest, and its accelerometer then measures thrust, not gravity)."""
+    if cal.config.vehicle == "auto":
+        vehicle_event(cal, cal._vehicle.update(math.sqrt(max(0.0, float(B.var3["accel"][b]))), None, tl), tl)
+    return rest_noise(n, cal._vehicle, cal._noise.high["accel"], cal._noise.ratio["accel"])
+
+
+def vehicle_accel(cal: OnlineCalibrator, M: Array, o: Array, a_mean: Array, sig_mean: float, dt: float,
+                  tl: float) -> float:
+    """Variance (m/s²)² the vehicle's unknown acceleration adds to a moving block's accel update
+    (0 until the data show a vehicle: :class:`.vehicle.VehicleDetector`, fed here the specific-force
+    norm's unexplained deviation from g for the sigma points' models M (S, 3, 3), o (S, 3))."""
+    c = cal.config
+    if c.vehicle == "auto" and not cal._vehicle.active:
+        f_all = np.einsum("sij,sj->si", M, a_mean - o)
+        dev = cal._models.acc.deviation(f_all, cal._Wm, cal._Wc, sig_mean)
+        vehicle_event(cal, cal._vehicle.update(math.nan, dev, tl), tl)
+    return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt) if cal._vehicle.active else 0.0
+
+
+def vehicle_event(cal: OnlineCalibrator, why: str | None, tl: float) -> None:
+    if why:
+        cal._event("vehicle", why + VEHICLE_NOTE, tl)
+
+
+def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T: Array, n: dict[str, float],
+                held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
+    """Predict over the block, then one update with its mean accel (unless clipped) and mag."""
+    tl = float(t[-1])
+    try:
+        X = sigma_points_of(cal)
+    except np.linalg.LinAlgError:
+        cal._diverged("covariance is not positive definite", tl)
+        return
+    off = offsets(cal, "gyro", cal._rest_det.still)
+    extra = gyro_offsets(X[cal.lay.dyn_pts], off, temp_reg(cal, T) if off.temp is not None else None,
+                         calibrated(cal, "accel", a) if off.gsens is not None else None, T.shape[0])
+    pred, sens = propagate_sigma_points(X, cal.R_nom, B, b, cal.lay.dyn_pts, use_mag, extra)
+    dt_blk = float(t[-1] - cal._t_last)
+    q = block_process_noise(cal._process_noise(dt_blk, n["gyro"]), B, b, dt_blk, n["gyro"], cal.P)
+    x_pred, Y, P_pred = predict_moments(X, cal._Wm, cal._Wc, q)
+    cal.R_nom = pred.R_end[0]
+    T_reg = float(np.mean(temp_reg(cal, T))) if has_temp(cal) else 0.0
+    rate = float(np.linalg.norm(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr)))
+    n_m = int(B.mhi[b] - B.mlo[b])
+    S = X.shape[0]
+    o, M = sens[0][:S], sens[1][:S]
+    var_v = vehicle_accel(cal, M, o, B.a_mean[b], n["accel"] / math.sqrt(t.size), dt_blk, tl)
+    cal._coverage.add_motion(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr), dt_blk, cal._vehicle.active)
+    if use_mag:
+        cal._coverage.add_field(calibrated(cal, "mag", B.m_mean[b]))
+    meas = motion_measurements(
+        cal._models, X, pred.f_body, pred.h_body, sens, None if clip["accel"] else B.a_mean[b],
+        B.m_mean[b] if use_mag else None, n["accel"] / math.sqrt(t.size), n["mag"] ** 2 / max(n_m, 1),
+        (cal._Wm, cal._Wc), rate, (offsets(cal, "accel", held["accel"]), offsets(cal, "mag", held["mag"])),
+        T_reg, var_v)
+    if not meas:
+        commit(cal, x_pred, P_pred, tl)
+        return
+    # not at rest (rests go to rest_step): an accel outlier is motion the model lacks, dropped
+    k = cal._div.count
+    res = gated_update(cal, Y, x_pred, P_pred, meas, False, tl, damp=cal.config.update_damping)
+    if cal._div.count == k:  # else the update declared a divergence: the restarted state stands
+        commit(cal, res.x, res.P, tl)
+
+
+def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: dict[str, float], held: dict[str, bool],
+              use_mag: bool, clip: dict[str, bool]) -> None:
+    """A block inside a rest (:mod:`.rest`): the attitude is held (no gyro integration: the gyro's
+    reading at rest is its bias, measured by the zero-rate update) and the rest's running means are
+    one measurement on the state the rest began with. Ended by :meth:`_end_rest`."""
+    tl = float(t[-1])
+    if not (np.isfinite(cal.P).all() and (cal.P.diagonal() > 0).all()):
+        # the running rest restarts from its first state, which would hide a broken covariance
+        cal._rest_acc = None
+        cal._diverged("non-finite or non-positive variance", tl)
+        return
+    acc = cal._rest_acc
+    first = acc is None
+    if acc is None:
+        acc = cal._rest_acc = RestAccumulator.start(cal.x, cal.P, cal.R_nom, held, use_mag)
+    dt_blk = float(t[-1] - cal._t_last)
+    acc.q += cal._process_noise(dt_blk, n["gyro"])
+    k = cal._div.count
+    for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
+        cal._nis_record(s, nis, tl)
+    if cal._div.count != k:
+        return  # a divergence: the restarted state stands (not the rest's first state)
+    acc.add(B, b, n, not clip["accel"], use_mag, temp_reg(cal, T) if has_temp(cal) else None)
+    if acc.na:
+        cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
+    x0, P0 = acc.x, acc.P + np.diag(acc.q)
+    cal.x, cal.P, cal.R_nom = x0.copy(), P0, acc.R_nom
+    try:
+        X = sigma_points_of(cal)
+    except np.linalg.LinAlgError:
+        cal._rest_acc = None
+        cal._diverged("covariance is not positive definite", tl)
+        return
+    sens = sensor_models(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
+    off = (offsets(cal, "accel", held["accel"]), offsets(cal, "mag", held["mag"]), offsets(cal, "gyro", True))
+    meas = rest_measurements(cal._models, X, cal.R_nom, sens, acc, (cal._Wm, cal._Wc), off,
+                             float(np.mean(cal.x[index("gyro", "scale")])))
+    res = gated_update(cal, X - x0, x0, P0, meas, True, tl, record=first, post=True)
+    acc.post = res.post
+    if cal._div.count == k:  # a divergence in the update also ended the running rest
+        commit(cal, res.x, res.P, tl)
+
+
+def sigma_points_of(cal: OnlineCalibrator) -> Array:
+    c = cal.config
+    return sigma_points(cal.x, cal.P, c.sp_alpha, c.sp_kappa, cal.lay.perm, cal.lay.perm_id)
+
+
+def gated_update(cal: OnlineCalibrator, Y: Array, x_pred: Array, P_pred: Array, meas: list[Measurement],
+                 static: bool, t: float, record: bool = True, post: bool = False, damp: float = 0.0) -> UpdateResult:
+    """:func:`.unscented.update` with this filter's gates and consider states, then the NIS
+    bookkeeping in measurement order (``record``: the NIS values enter the windows)."""
+    res = update(Y, x_pred, P_pred, meas, cal._Wm, cal._Wc, Gating(cal._gates, static),
+                 cal.lay.consider, damp, post)
+    for s, nis, status in res.nis:
+        fail = divergence.nis_failure(nis)
+        if fail is not None:  # passes both the gate and the windows otherwise
+            cal._diverged(f"{s}: {fail}", t)
+            return res
+        if status == "drop":
+            # motion the model has no term for (linear acceleration): an outlier, not a statistic of
+            # the filter's consistency — dropped and counted, kept out of the NIS windows
+            cal._nis.reject(s)
+            continue
+        if record:
+            cal._nis_record(s, nis, t)
+        if status == "soft":
+            cal._nis.reject(s)
+    return res
+
+
+def commit(cal: OnlineCalibrator, x_new: Array, P_new: Array, tl: float) -> None:
+    """Take a posterior (x (n,), P (n, n)) as the state after a motion or rest update at log time ``tl`` s:
+    fold its attitude error into the nominal (reset, USQUE), forget the heading while nothing sees it,
+    and treat a non-finite state or non-positive variance as a divergence instead."""
+    c = cal.config
+    # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone): it is
+    # forgotten, with a diffuse σ (a small one would leak spurious information into the alphas)
+    cal.R_nom, x_new, P_new = fold_attitude(cal.R_nom, x_new, P_new,
+                                            c.yaw_free_sigma**2 if cal._mag.yaw_free else None, ATT)
+    if (not np.isfinite(x_new).all() or not np.isfinite(P_new).all()
+            or not (P_new.diagonal() > 0).all()):
+        cal._diverged("non-finite state or non-positive variance", tl)
+        return
+    cal.x, cal.P = x_new, P_new
+    cal._n_blocks += 1
+    if tl >= cal._next_trace:
+        cal._trace.append(trace_row(tl, cal.x, cal.sigma(), cal.lay,
+                                    {s: cal._nis.last(s) for s in cal._nis.stats}))
+        cal._next_trace = tl + c.trace_every_s

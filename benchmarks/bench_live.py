@@ -82,14 +82,17 @@ def measure(data, backend: str, seconds: float, workdir: Path) -> dict[str, floa
         if proc.poll() is None:
             proc.kill()
             proc.wait(10)
-    if rc != 0:
+    # 4/5: a result whose health check says degraded/failed (a 60-s cold start determines little); the CPU
+    # it cost is what is measured here
+    if rc not in (0, 4, 5):
         raise RuntimeError(f"onlinecal run exited {rc}: {err.read_text()[-500:]}")
     cal = json.loads((workdir / f"{backend}.json").read_text())
     return {"startup_wall_s": t_open - t_start, "startup_cpu_s": cpu_open, "stream_wall_s": t1 - t0,
             "stream_cpu_s": cpu1 - cpu0, "pct_core": 100.0 * (cpu1 - cpu0) / (t1 - t0),
             "settle_s": settle, "steady_pct": 100.0 * (cpu1 - cpu_s) / (t1 - t_s),
             "steady_us": 1e6 * (cpu1 - cpu_s) / ((t1 - t_s) * len(data.t_imu) / seconds),
-            "imu_samples": float(cal.get("meta", {}).get("online", {}).get("imu_samples", float("nan")))}
+            "imu_samples": float(cal.get("meta", {}).get("online", {}).get("imu_samples", float("nan"))),
+            "exit_status": float(rc)}
 
 
 def decode_only(data, seconds: float, bulk: bool = True) -> float:  # type: ignore[no-untyped-def]
@@ -143,7 +146,8 @@ def main() -> None:
                   f"{r['pct_core']:.1f} % over the whole stream "
                   f"({r['stream_cpu_s']:.2f} s CPU in {r['stream_wall_s']:.1f} s, decoding included; "
                   f"{1e6 * r['stream_cpu_s'] / data.n_imu:.1f} µs CPU per message; "
-                  f"{r['imu_samples']:.0f} samples filtered); start-up {r['startup_cpu_s']:.1f} s CPU, "
+                  f"{r['imu_samples']:.0f} samples filtered, exit status {r['exit_status']:.0f}); "
+                  f"start-up {r['startup_cpu_s']:.1f} s CPU, "
                   f"{r['startup_wall_s']:.1f} s wall")
 
 

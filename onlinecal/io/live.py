@@ -556,7 +556,7 @@ class LiveSource:
                     n -= 1
                     break
                 self._handle(link, msg)
-            if n == 0 and link.conn.select(0.05):
+            if n == 0 and not self._span_done() and link.conn.select(0.05):
                 # Data came: let a few more datagrams arrive before reading them, so that one wake-up takes
                 # ~8 messages at 400 Hz instead of one (the wake-ups were most of the link's CPU). 20 ms is
                 # small beside what a sample waits anyway (the reorder window, the block of block_s).

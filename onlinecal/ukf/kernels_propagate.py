@@ -157,7 +157,10 @@ def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, 
         _integrate(om, dt, c_mag, has_mag, P, Ps, Pm)
         _rodrigues_into(X[s, 0], X[s, 1], X[s, 2], Rd)
         _mul33(R_nom, Rd, R0)
-        _mul33(R0, P, R_end[si])
+        _mul33(R0, P, Rd)
+        for i in range(3):
+            for j in range(3):
+                R_end[si, i, j] = Rd[i, j]
         for j in range(3):
             f_body[s, j] = (R0[2, 0] * Ps[0, j] + R0[2, 1] * Ps[1, j] + R0[2, 2] * Ps[2, j]) * inv_L
         if has_mag:
@@ -166,7 +169,9 @@ def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, 
             for j in range(3):
                 h_body[s, j] = cd * Q[1, j] - sd * Q[2, j]
             if si == 0:
-                Q0[:, :] = Q
+                for i in range(3):
+                    for j in range(3):
+                        Q0[i, j] = Q[i, j]
     _share_mean(X, dyn, f_body, h_body, Q0, has_mag, dip_col)
     return R_end, f_body, h_body
 

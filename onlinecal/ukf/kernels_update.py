@@ -268,8 +268,15 @@ def _kept(S_zz: Array, hph: Array, Pxz: Array, nu: Array, keep: NDArray[np.bool_
           damp: float) -> tuple[Array, Array, Array, Array]:
     """The kept components of the measurement: S_zz (k, k), the gain's S (k, k) (damped: each diagonal
     entry at least its HPHᵀ part plus damp·HPHᵀ, Zanetti's partial update), Pxz (n, k) and ν (k,)."""
-    idx = np.nonzero(keep)[0]
-    n_keep = idx.shape[0]
+    n_keep = 0
+    for i in range(keep.shape[0]):
+        n_keep += keep[i]
+    idx = np.empty(n_keep, np.int64)
+    c = 0
+    for i in range(keep.shape[0]):
+        if keep[i]:
+            idx[c] = i
+            c += 1
     Sz = np.empty((n_keep, n_keep))
     Sg = np.empty((n_keep, n_keep))
     for a in range(n_keep):
@@ -321,7 +328,10 @@ def update_kernel(Y: Array, x_pred: Array, P_pred: Array, z: Array, Z: Array, r_
     if not _gate(S_zz, r_diag, z_pred, nu, nis, gated, droppable, gates, want_post, keep, status, post_z,
                  post_P):
         return x_pred.copy(), P_pred.copy(), nis, status, post_z, post_P, False
-    if not keep.any():
+    n_keep = 0
+    for i in range(keep.shape[0]):
+        n_keep += keep[i]
+    if n_keep == 0:
         return x_pred.copy(), P_pred.copy(), nis, status, post_z, post_P, True
     Sz, Sg, Pk, nuk = _kept(S_zz, hph, Pxz, nu, keep, damp)
     x, P, ok = gain_update_kernel(x_pred, P_pred, Pk, Sz, Sg, nuk, consider)

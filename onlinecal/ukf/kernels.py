@@ -3,12 +3,13 @@ and their compilation cache. The kernels themselves: :mod:`.kernels_propagate` (
 block, sensor model, attitude errors) and :mod:`.kernels_update` (sigma points, moments, the update); their
 names stay importable from here (``kernels.update_kernel``).
 
-The numpy functions of :mod:`onlinecal.ukf.propagate` are the reference: every kernel here computes the same
-quantity in the same equations, written as loops over sigma points and samples so that one call does a whole
-block without going back to the interpreter (the numpy path spends most of a block in dispatch overhead of
-dozens of small array operations). Results agree with the reference to rounding (tests/test_speed_kernels.py:
-≤ 1e-9 relative); the order of the floating-point operations differs (a sequential product instead of the
-reference's log₂-depth scan), so they are not bit-identical.
+The numpy functions of :mod:`onlinecal.ukf.propagate`, :mod:`onlinecal.ukf.layout` and
+:mod:`onlinecal.ukf.unscented` are the reference: every kernel computes the same quantity in the same
+equations, written as loops over sigma points and samples so that one call does a whole block without going
+back to the interpreter (the numpy path spends most of a block in dispatch overhead of dozens of small array
+operations). Results agree with the reference to rounding (tests/test_speed_kernels.py: ≤ 1e-9 relative);
+the order of the floating-point operations differs (a sequential product instead of the reference's
+log₂-depth scan), so they are not bit-identical.
 
 Backend: ``ONLINECAL_KERNELS=numba|numpy`` in the environment when this module is first imported, or
 :func:`set_backend` at run time; ``numba`` is the default where numba imports, else ``numpy`` (another

@@ -157,8 +157,8 @@ def cmd_simulate(a: argparse.Namespace) -> int:
     from .sim.effects import EffectError, check_combination, parse_effect
 
     out = Path(a.out)
-    if out.suffix not in (".tlog", ".csv", ".bin"):
-        raise UsageError(f"{out}: extension must be .tlog, .csv or .bin")
+    if out.suffix not in (".tlog", ".csv", ".bin", ".ulg"):
+        raise UsageError(f"{out}: extension must be .tlog, .csv, .bin or .ulg")
     _check_out(a.out, "--out")
     _check_out(str(out) + ".truth.json", "--out")
     try:

@@ -560,6 +560,10 @@ def cmd_diagnose(a: argparse.Namespace) -> int:
             print(f"    gain: {', '.join(x for x in gain if x)}", file=out)
     for u in diag.untestable:
         print(f"  not testable: {u}", file=out)
+    for e in diag.baseline.get("excluded", []):
+        from .diagnose.gaps import excluded_text
+
+        print(f"  {excluded_text(e)}", file=out)
     ub, ua = diag.baseline.get("ukf") or {}, diag.ukf_extended or {}
     nis: dict[str, Any] = {}
     if "nis_mean" in ub:

@@ -28,11 +28,13 @@ from .sensors import StepReport, sqrt_psd
 Array = NDArray[np.float64]
 
 
-def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
+def gyro_bias_cumsum(segs: list[Segmentation], notes: list[str] | None = None) -> tuple[Array, Array]:
     """Bias o_gyr by an LS line fit to the cumulative sum of the raw rate over rests (eqs. 34–35).
 
     In a rest the integrated raw rate grows as θ(t) = o·t + c; one common slope over all rests (each
-    with its own intercept). Returns (o (3,), 1σ (3,)) in rad/s; σ from the residual of the rates.
+    with its own intercept). Returns (o (3,), 1σ (3,)) in rad/s; σ from the residual of the rates, and at
+    least the standard error of the rest means; where the rests disagree beyond their own noise
+    (:func:`rest_disagreement`) σ covers their spread, with a sentence appended to ``notes``.
     """
     num = np.zeros(3)
     den = 0.0
@@ -56,9 +58,21 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
     sigma = np.sqrt(np.sum(res_var, axis=0) / n_tot / n_tot)
     # Rests far apart in time see a bias that moved (temperature, instability): the white-noise σ is
     # then optimistic. With several rests, σ is at least the standard error of their means' scatter.
-    means = np.array([s.data.gyro[iv.i0:iv.i1].mean(0) for s in segs for iv in s.rests if iv.n >= 3])
-    if means.shape[0] >= 2:
-        sigma = np.maximum(sigma, means.std(axis=0, ddof=1) / np.sqrt(means.shape[0]))
+    # Rests that disagree beyond their own noise (g-sensitivity, bias instability, temperature) leave the
+    # bias at any one moment known only to their spread: a σ is a promise, it must cover that spread.
+    rests = [s.data.gyro[iv.i0:iv.i1] for s in segs for iv in s.rests if iv.n >= 3]
+    if len(rests) >= 2:
+        means = np.array([w.mean(0) for w in rests])
+        se = np.array([w.std(0) / np.sqrt(w.shape[0]) for w in rests])
+        spread = means.std(axis=0, ddof=1)
+        chi2, bar, disagree = rest_disagreement(means, se)
+        sigma = np.where(disagree, np.maximum(sigma, spread), np.maximum(sigma, spread / np.sqrt(len(rests))))
+        if disagree.any() and notes is not None:
+            ax = [a for a, d in zip("xyz", disagree, strict=True) if d]
+            notes.append(f"gyro bias: the {len(rests)} rests disagree beyond their noise on {', '.join(ax)} "
+                         f"(χ² {', '.join(f'{c:.0f}' for c in chi2[disagree])} against {bar:.0f} on "
+                         f"{len(rests) - 1} dof; spread {', '.join(f'{x:.2g}' for x in spread[disagree])} rad/s): "
+                         "σ widened to the spread (g-sensitivity, instability or temperature; `diagnose` names it)")
     # Values on a lattice coarser than the noise (RAW_IMU: 1 mrad/s) do not average out: the mean of
     # held readings can be off by up to half a step. σ is floored at q/√12 where the noise is below q.
     w_all = np.concatenate([s.data.gyro[iv.i0:iv.i1] for s in segs for iv in s.rests])
@@ -71,6 +85,19 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
         if q > 0 and (np.std(w_all[:, k]) < 0.6 * q or abs(q - 1e-3) < 1e-9):
             sigma[k] = max(sigma[k], q / np.sqrt(12))
     return o, sigma
+
+
+def rest_disagreement(means: Array, se: Array) -> tuple[Array, float, NDArray[np.bool_]]:
+    """Whether K rest means (K, 3) rad/s disagree beyond their standard errors ``se`` (K, 3): per axis
+    χ² = Σ ((m_i − m̄)/se_i)² on K − 1 degrees of freedom against the bar K − 1 + 3·√(2(K − 1)) (3 σ of
+    the χ² above its mean). A rest with se = 0 (readings held on a lattice) counts only where its mean
+    differs. Returns (χ² (3,), bar, disagree (3,) bool)."""
+    k = means.shape[0]
+    d = means - means.mean(axis=0)
+    z = np.divide(d, se, out=np.where(np.abs(d) > 0, np.inf, 0.0), where=se > 0)
+    chi2 = np.sum(z**2, axis=0)
+    bar = (k - 1) + 3.0 * np.sqrt(2.0 * (k - 1))
+    return chi2, float(bar), chi2 > bar
 
 
 def gyro_axes_from_phases(segs: list[Segmentation], o: Array) -> dict[int, tuple[Array, float, float]]:
@@ -367,7 +394,7 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     """
     rep = StepReport("gyro")
     try:
-        o, sig_o = gyro_bias_cumsum(segs)
+        o, sig_o = gyro_bias_cumsum(segs, rep.warnings)
         bias_from = "rests (eqs. 34-35)"
     except FitError:
         o, sig_o, bias_from = None, None, None
@@ -430,6 +457,8 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
         sig_b = np.sqrt(np.abs(np.diag(Gi @ cov12[9:, 9:] @ Gi.T)))
         if o is not None:
             rep.figures["bias_rests_minus_any_rotation"] = (o - o_k).tolist()
+        if sig_o is not None and any(w.startswith("gyro bias: the") for w in rep.warnings):
+            sig_b = np.maximum(sig_b, sig_o)  # rests that disagree bound the bias σ however it is fitted
         o, sig_o, bias_from = o_k, sig_b, "any rotation, fitted with the matrix"
         G, cov = G_k, cov12[:9, :9]
         use_phase_sigma = False

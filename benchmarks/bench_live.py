@@ -82,25 +82,31 @@ def measure(data, backend: str, seconds: float, workdir: Path) -> dict[str, floa
         if proc.poll() is None:
             proc.kill()
             proc.wait(10)
-    if rc != 0:
+    # 4/5: a result whose health check says degraded/failed (a 60-s cold start determines little); the CPU
+    # it cost is what is measured here
+    if rc not in (0, 4, 5):
         raise RuntimeError(f"onlinecal run exited {rc}: {err.read_text()[-500:]}")
     cal = json.loads((workdir / f"{backend}.json").read_text())
     return {"startup_wall_s": t_open - t_start, "startup_cpu_s": cpu_open, "stream_wall_s": t1 - t0,
             "stream_cpu_s": cpu1 - cpu0, "pct_core": 100.0 * (cpu1 - cpu0) / (t1 - t0),
             "settle_s": settle, "steady_pct": 100.0 * (cpu1 - cpu_s) / (t1 - t_s),
             "steady_us": 1e6 * (cpu1 - cpu_s) / ((t1 - t_s) * len(data.t_imu) / seconds),
-            "imu_samples": float(cal.get("meta", {}).get("online", {}).get("imu_samples", float("nan")))}
+            "imu_samples": float(cal.get("meta", {}).get("online", {}).get("imu_samples", float("nan"))),
+            "exit_status": float(rc)}
 
 
-def decode_only(data, seconds: float) -> float:  # type: ignore[no-untyped-def]
+def decode_only(data, seconds: float, bulk: bool = True) -> float:  # type: ignore[no-untyped-def]
     """CPU µs per message of the link alone: :class:`onlinecal.io.live.LiveSource` in this process, its
     blocks consumed and dropped (no filter), the sender in another thread; the consuming thread's CPU time
-    (``time.thread_time``) — what decoding, reordering and block assembly cost without the filter."""
+    (``time.thread_time``) — what decoding, reordering and block assembly cost without the filter.
+    ``bulk`` False: RAW_IMU through pymavlink's parser as every other message (the bulk decoder
+    :class:`onlinecal.io.live.RawImuFrames` off), for the comparison."""
     from onlinecal.io.live import LiveSource
     from onlinecal.testing.sender import send_session
 
     port = _free_port()
     src = LiveSource(f"udpin:127.0.0.1:{port}", rate_hz=0, duration_s=seconds - 0.5)
+    src._frames.usable = bulk
     th = threading.Thread(target=lambda: send_session(data, f"udpout:127.0.0.1:{port}", rate_scale=1.0),
                           daemon=True)
     th.start()
@@ -127,9 +133,11 @@ def main() -> None:
     print(f"stream: {data.n_imu} RAW_IMU messages at {args.rate:g} Hz over UDP 127.0.0.1, {args.seconds:g} s in "
           f"real time (simulated flight, cold start); load average {os.getloadavg()[0]:.1f} on "
           f"{os.cpu_count()} cores")
-    us = decode_only(data, args.seconds)
-    print(f"the link alone (LiveSource: receive, decode, reorder, blocks; no filter): {us:.1f} µs CPU per "
-          f"message = {us * args.rate / 1e4:.1f} % of one core at {args.rate:g} Hz")
+    for bulk in (True, False):
+        us = decode_only(data, args.seconds, bulk)
+        how = "bulk RAW_IMU decoder" if bulk else "every message through pymavlink's parser"
+        print(f"the link alone (LiveSource: receive, decode, reorder, blocks; no filter; {how}): {us:.1f} µs "
+              f"CPU per message = {us * args.rate / 1e4:.1f} % of one core at {args.rate:g} Hz")
     with tempfile.TemporaryDirectory() as td:
         for be in args.backends.split(","):
             r = measure(data, be, args.seconds, Path(td))
@@ -138,7 +146,8 @@ def main() -> None:
                   f"{r['pct_core']:.1f} % over the whole stream "
                   f"({r['stream_cpu_s']:.2f} s CPU in {r['stream_wall_s']:.1f} s, decoding included; "
                   f"{1e6 * r['stream_cpu_s'] / data.n_imu:.1f} µs CPU per message; "
-                  f"{r['imu_samples']:.0f} samples filtered); start-up {r['startup_cpu_s']:.1f} s CPU, "
+                  f"{r['imu_samples']:.0f} samples filtered, exit status {r['exit_status']:.0f}); "
+                  f"start-up {r['startup_cpu_s']:.1f} s CPU, "
                   f"{r['startup_wall_s']:.1f} s wall")
 
 

@@ -157,8 +157,8 @@ def cmd_simulate(a: argparse.Namespace) -> int:
     from .sim.effects import EffectError, check_combination, parse_effect
 
     out = Path(a.out)
-    if out.suffix not in (".tlog", ".csv", ".bin"):
-        raise UsageError(f"{out}: extension must be .tlog, .csv or .bin")
+    if out.suffix not in (".tlog", ".csv", ".bin", ".ulg"):
+        raise UsageError(f"{out}: extension must be .tlog, .csv, .bin or .ulg")
     _check_out(a.out, "--out")
     _check_out(str(out) + ".truth.json", "--out")
     try:
@@ -560,6 +560,10 @@ def cmd_diagnose(a: argparse.Namespace) -> int:
             print(f"    gain: {', '.join(x for x in gain if x)}", file=out)
     for u in diag.untestable:
         print(f"  not testable: {u}", file=out)
+    for e in diag.baseline.get("excluded", []):
+        from .diagnose.gaps import excluded_text
+
+        print(f"  {excluded_text(e)}", file=out)
     ub, ua = diag.baseline.get("ukf") or {}, diag.ukf_extended or {}
     nis: dict[str, Any] = {}
     if "nis_mean" in ub:
@@ -721,6 +725,7 @@ CSV_SCHEMA = ("CSV logs: header time_s,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z,ma
 _EXAMPLES = {
     "demo": "example: onlinecal demo --out /tmp/demo --seed 3",
     "simulate": "examples: onlinecal simulate --out s.tlog --seed 1\n"
+                "          onlinecal simulate --out s.ulg --seed 1   # PX4 ULog: sensor_accel/gyro/mag + CAL_*\n"
                 "          onlinecal simulate --out f.csv --profile flight --duration 120 --rate 200 "
                 "--effect time_offset:sensor=mag,seconds=0.05",
     "batch": "examples: onlinecal batch session.tlog --json cal.json --report rep/\n"
@@ -731,9 +736,13 @@ _EXAMPLES = {
            "--checkpoint run.ckpt",
     "compare": "examples: onlinecal compare batch.json online.json\n"
                "          onlinecal compare session.tlog.truth.json batch.json --tol 5   # exit 1 beyond 5 sigma",
-    "diagnose": "example: onlinecal diagnose session.csv --json diag.json --report diag/",
+    "diagnose": "examples: onlinecal diagnose session.csv --json diag.json --report diag/\n"
+                "          onlinecal diagnose gappy.bin --json - | jq .baseline.excluded   "
+                "# NaN bursts and logging gaps cut out and named",
     "export": "examples: onlinecal export cal.json --format ardupilot --out cal.parm\n"
-              "          onlinecal export cal.json --format px4 --onboard vehicle.params --out -",
+              "          onlinecal export cal.json --format px4 --onboard vehicle.params --out -\n"
+              "          (a mag_current extension in cal.json is written as COMPASS_MOT_*/COMPASS_MOTCT or "
+              "CAL_MAGn_*COMP/CAL_MAG_COMP_TYP)",
 }
 
 
@@ -766,8 +775,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_SEED, default=0, help="simulation seed (default 0)")
     p.set_defaults(fn=cmd_demo)
 
-    p = command("simulate", "write a simulated session (.tlog/.csv/.bin) and its truth (FILE.truth.json)")
-    p.add_argument("--out", required=True, metavar="FILE", help="FILE.tlog, FILE.csv or FILE.bin")
+    p = command("simulate", "write a simulated session (.tlog/.csv/.bin/.ulg) and its truth (FILE.truth.json)")
+    p.add_argument("--out", required=True, metavar="FILE", help="FILE.tlog, FILE.csv, FILE.bin or FILE.ulg")
     p.add_argument("--profile", default="paper",
                    help="paper | flight | multirotor | fixedwing, vehicles with options "
                         "NAME[:vibration=M/S2,mag_interference=F,rest=S]")
@@ -780,7 +789,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_simulate)
 
     p = command("batch", "the paper's offline pipeline over logs of one sensor unit")
-    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin or .csv. " + CSV_SCHEMA)
+    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin, .ulg or .csv. " + CSV_SCHEMA)
     _add_json(p, "the calibration")
     p.add_argument("--gravity", type=_POS, default=9.80665, metavar="G", help="local g, m/s^2 (default 9.80665)")
     p.add_argument("--report", default=None, metavar="DIR", help="write PNG figures and report.md into DIR")
@@ -788,7 +797,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_batch)
 
     p = command("replay", "the augmented-state UKF over logs")
-    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin or .csv")
+    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin, .ulg or .csv")
     p.add_argument("--init", default="batch", metavar="batch|none|CAL.json",
                    help="the filter's start: the batch pipeline on the same logs (default), a cold start, or "
                         "a calibration JSON (a simulator truth file also works)")
@@ -842,7 +851,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_compare)
 
     p = command("diagnose", "what the model gets wrong on this data, the cause, the extended model")
-    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin or .csv")
+    p.add_argument("logs", nargs="+", metavar="LOG", help=".tlog, .bin, .ulg or .csv")
     _add_json(p, "the diagnosis")
     p.add_argument("--report", default=None, metavar="DIR", help="directory for report.md and plots")
     p.add_argument("--gravity", type=_POS, default=9.80665, metavar="G", help="local g, m/s^2")

@@ -336,6 +336,11 @@ def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss",
         if not ap and not (PX4_SCALE_RANGE[0] <= np.diag(W_fw).min() and np.diag(W_fw).max() <= PX4_SCALE_RANGE[1]):
             warnings.append(f"mag: CAL_MAG0_*SCALE outside PX4's range {PX4_SCALE_RANGE}")
 
+    # -- motor interference (a mag_current extension: compassmot) ----------------------------------
+    mot_block, mot_withheld, mot_origin, mot_warn = _compassmot(fitted, cal, fmt, mag_unit, composed, onboard,
+                                                                None if cal.mag is None else (W_fw, R))
+    warnings += mot_warn
+
     # -- accelerometer ----------------------------------------------------------------------------
     acc_block: dict[str, float] = {}
     if cal.accel is not None:
@@ -376,13 +381,16 @@ def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss",
     ordered: dict[str, float] = {}
     for blk in blocks:
         ordered.update(blk)
+    for n in mot_block:  # COMPASS_MOTCT and CAL_MAG_COMP_TYP are enumerations
+        types[n] = MAV_PARAM_TYPE_INT32 if n in ("COMPASS_MOTCT", "CAL_MAG_COMP_TYP") else MAV_PARAM_TYPE_REAL32
 
     for name, d in dropped.items():
         if not d.exact:
             warnings.append(f"{name}: dropped {d.what}; worst direction error {d.max_angle_deg:.3f}°, "
                             f"worst relative error {100 * d.max_rel_error:.3f} %")
-    if cal.extensions:
-        warnings.append(f"extensions {sorted(cal.extensions)} have no firmware parameter and are not exported")
+    if set(cal.extensions) - {"mag_current"}:
+        warnings.append(f"extensions {sorted(set(cal.extensions) - {'mag_current'})} have no firmware parameter "
+                        "and are not exported")
     if not ap:
         warnings.append("PX4 applies CAL_<S>0_* only if CAL_<S>0_ID holds the sensor's device id; this file does "
                         "not set the ids (calibrate once in QGroundControl so slot 0 belongs to this sensor)")
@@ -390,11 +398,84 @@ def export_calibration(cal: Calibration, fmt: str, mag_unit: str = "gauss",
     if force and guard(fitted, list(ordered), health):
         warnings.append("--force: parameters the σ or the health verdict do not support are written anyway")
     origin = {n: _origin(n, fitted, composed, onboard) for n in ordered}
+    # the motor-interference block after the field's own (firmware order: COMPASS_MOT after COMPASS_OFS..SCALE;
+    # PX4's CAL_MAGn_xCOMP after CAL_MAGn_*), guarded by its own σ (force writes it anyway)
+    if mot_block:
+        at = list(ordered).index(next(reversed(mag_block))) + 1 if mag_block else len(ordered)
+        items = list(ordered.items())
+        ordered = dict(items[:at] + list(mot_block.items()) + items[at:])
+        origin.update(mot_origin)
+        if not force:
+            withheld.update(mot_withheld)
+        elif mot_withheld:
+            warnings.append("--force: motor-interference parameters their σ does not support are written anyway")
     kept = {n: v for n, v in ordered.items() if n not in withheld}
     if not any(c.sigma for c in (fitted.gyro, fitted.accel, fitted.mag) if c is not None):
         warnings.append("the calibration carries no σ: nothing could be checked against its uncertainty")
     return Export(fmt, kept, {n: types[n] for n in kept}, dropped, pre_warnings + warnings, mag_unit,
                   withheld, origin, composed)
+
+
+# -- motor interference: a mag_current extension as COMPASS_MOT* / CAL_MAGn_xCOMP -------------------------
+
+MOT_MIN_SIGMAS = 3.0  # a coefficient vector written only when some component is ≥ this many σ from zero
+
+
+def _compassmot(fitted: Calibration, cal: Calibration, fmt: str, mag_unit: str, composed: bool,
+                onboard: dict[str, float] | None, mag_frame: tuple[Array, Array] | None
+                ) -> tuple[dict[str, float], dict[str, str], dict[str, str], list[str]]:
+    """The autopilot's motor-interference parameters for ``fitted``'s ``mag_current`` extension (raw = true
+    + k·x, x current in A or throttle 0…1; :func:`onlinecal.extensions.compassmot_params` for units and sign).
+
+    Where each firmware adds its term: ArduPilot after offsets and soft iron, in the rotated frame
+    (AP_Compass_Backend::correct_field: ``mag = DIA/ODI·(rot·raw + OFS) + MOT·x``), so its COMPASS_MOT is
+    −W·R·k with the exported soft iron W and orientation R (``mag_frame``, in mG); PX4 in the raw frame
+    before offset and scale (calibration::Magnetometer::Correct: ``rot·(scale·(raw + COMP·x − off))``), so
+    CAL_MAGn_xCOMP is −k in gauss (per kA). Returns (params, withheld name → why, origin, warnings).
+    A coefficient with ``coeff_sigma`` none of whose components reaches MOT_MIN_SIGMAS σ is withheld; so
+    is one fitted on data the onboard parameters had already corrected (its frame is not the raw one)."""
+    from .extensions import compassmot_params, validate_extensions
+
+    if not fitted.extensions or "mag_current" not in fitted.extensions:
+        return {}, {}, {}, []
+    entries = validate_extensions({"mag_current": fitted.extensions["mag_current"]})["mag_current"]
+    if mag_frame is None:
+        return {}, {}, {}, ["mag_current: the calibration has no magnetometer; COMPASS_MOT/CAL_MAG*_COMP not written"]
+    W_fw, R = mag_frame
+    params: dict[str, float] = {}
+    withheld: dict[str, str] = {}
+    origin: dict[str, str] = {}
+    warnings: list[str] = []
+    if len({e["basis"] for e in entries}) > 1:
+        raise ExportError("mag_current: entries on both current and throttle; the firmware takes one basis "
+                          "(COMPASS_MOTCT / CAL_MAG_COMP_TYP)")
+    for e in entries:
+        k = np.asarray(e["coeff"], float)
+        k_fw = W_fw @ (R @ k) if fmt == "ardupilot" else k  # the frame the firmware adds its term in
+        p = compassmot_params(k_fw, e["basis"], MAG_UNITS[mag_unit], e["instance"])[fmt]
+        unit = "A" if e["basis"] == "current" else "full throttle"
+        sig = e.get("coeff_sigma")
+        src = (f"mag_current.coeff {np.array2string(k, precision=5, separator=', ')} {mag_unit} per {unit}"
+               + (f" ± {np.array2string(np.asarray(sig), precision=2, separator=', ')}" if sig is not None
+                  else " (σ unknown)") + f" ({fitted.source})")
+        why = None
+        if composed:
+            why = ("mag_current was fitted on data the onboard parameters had already corrected; its frame is not "
+                   "the raw one the firmware adds COMPASS_MOT/CAL_MAG_COMP in (refit on uncorrected data)")
+        elif sig is not None and not np.any(np.abs(k) >= MOT_MIN_SIGMAS * np.asarray(sig, float)):
+            why = (f"mag_current.coeff is within {MOT_MIN_SIGMAS:g} σ of zero on every axis: no interference "
+                   "the data could tell from noise")
+        for n, v in p.items():
+            params[n] = v
+            origin[n] = src
+            if why:
+                withheld[n] = why
+    if sig is None:
+        warnings.append("mag_current: the coefficient carries no σ; COMPASS_MOT/CAL_MAG_COMP written unchecked")
+    if composed and onboard and any(abs(v) > 0 for n, v in onboard.items()
+                                    if n.startswith("COMPASS_MOT") or n.endswith("COMP")):
+        warnings.append("mag_current: the onboard parameters already hold a motor compensation")
+    return params, withheld, origin, warnings
 
 
 # -- guard, origin, composition with the onboard parameters ----------------------------------------

@@ -143,6 +143,9 @@ def validate_extensions(extensions: dict[str, Any] | None) -> dict[str, list[dic
         raise ValueError(f"extensions must be an object, got {type(extensions).__name__}")
     out: dict[str, list[dict[str, Any]]] = {}
     for name, v in extensions.items():
+        if name == "mag_current":  # not a simulator effect: a compassmot result, carried for the export
+            out[name] = [_mag_current_entry(d) for d in (v if isinstance(v, list) else [v])]
+            continue
         if name not in EXTENSION_KEYS:
             raise ValueError(f"unknown extension {name!r}; known: {', '.join(EFFECTS)}")
         items = v if isinstance(v, list) else [v]
@@ -224,6 +227,13 @@ def correct(data: ImuData, extensions: dict[str, Any] | None, calibration: Calib
         raise ValueError(f"extension {needs[0]} needs the calibration (gyro and accel) to be corrected")
     for e in ext.get("axis_sign", []):
         raw[e["sensor"]][:, e["sel"]] *= -1.0
+    for e in ext.get("mag_current", []):
+        if not data.n_mag:
+            continue
+        if e["basis"] not in data.series:
+            raise ValueError(f"a mag_current extension ({e['basis']}) on a log without a {e['basis']} series")
+        ts, xs = data.series[e["basis"]]
+        raw["mag"] = remove_mag_current(raw["mag"], np.interp(data.t_mag, ts, xs), e["coeff"])
     for e in ext.get("scale_nonlinearity", []):
         x = raw[e["sensor"]]
         x[:] = np.where(e["sel"], uninvert_nonlinearity(x, e["coeff"]), x)
@@ -284,6 +294,41 @@ def gsens_matrix(entry: dict[str, Any]) -> Array:
 # current or throttle beside the IMU, which ImuData does not hold yet (see docs/effects.md); the inverse and the
 # autopilot parameters are here so that the export can carry a coefficient found elsewhere (a tethered run).
 MAG_CURRENT_BASES = ("throttle", "current")
+
+
+MAG_CURRENT_KEYS = ("effect", "sensor", "axis", "coeff", "basis", "coeff_sigma", "instance")
+
+
+def _mag_current_entry(d: Any) -> dict[str, Any]:
+    """One ``mag_current`` extension entry: ``coeff`` (3,) raw magnetometer unit per A (basis "current") or
+    at full throttle (basis "throttle"), raw = true + coeff·x; optional ``coeff_sigma`` (3,) and compass
+    ``instance`` (1–3, default 1); ``sensor`` "mag", ``axis`` null."""
+    name = "mag_current"
+    if not isinstance(d, dict):
+        raise ValueError(f"extension {name}: expected an object of parameters, got {type(d).__name__}")
+    for k in d:
+        if k not in MAG_CURRENT_KEYS:
+            raise ValueError(f"extension {name}: unknown key {k!r} (valid: {', '.join(MAG_CURRENT_KEYS)})")
+    if d.get("effect", name) != name or d.get("sensor", "mag") != "mag" or d.get("axis") not in (None, "all"):
+        raise ValueError(f"extension {name}: acts on the magnetometer, all axes (sensor mag, axis null)")
+    if d.get("basis") not in MAG_CURRENT_BASES:
+        raise ValueError(f"extension {name}: basis must be one of {', '.join(MAG_CURRENT_BASES)} "
+                         f"(got {d.get('basis')!r})")
+    out: dict[str, Any] = {"sensor": "mag", "axis": None, "sel": np.ones(3, bool), "basis": d["basis"]}
+    for k in ("coeff", "coeff_sigma"):
+        if k not in d:
+            if k == "coeff":
+                raise ValueError(f"extension {name}: missing key 'coeff'")
+            continue
+        v = d[k]
+        if not isinstance(v, (list, tuple)) or len(v) != 3:
+            raise ValueError(f"extension {name}: {k} must be a list of 3 numbers (got {v!r})")
+        out[k] = np.array([_num(name, k, x) for x in v])
+    inst = d.get("instance", 1)
+    if isinstance(inst, bool) or inst not in (1, 2, 3):
+        raise ValueError(f"extension {name}: instance must be 1, 2 or 3 (got {inst!r})")
+    out["instance"] = int(inst)
+    return out
 
 
 def remove_mag_current(mag: Array, x: Array, coeff: Array) -> Array:

@@ -28,16 +28,23 @@ from .sensors import StepReport, sqrt_psd
 Array = NDArray[np.float64]
 
 
-def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
+def gyro_bias_cumsum(segs: list[Segmentation], notes: list[str] | None = None) -> tuple[Array, Array]:
     """Bias o_gyr by an LS line fit to the cumulative sum of the raw rate over rests (eqs. 34–35).
 
     In a rest the integrated raw rate grows as θ(t) = o·t + c; one common slope over all rests (each
-    with its own intercept). Returns (o (3,), 1σ (3,)) in rad/s; σ from the residual of the rates.
+    with its own intercept). Returns (o (3,), 1σ (3,)) in rad/s; σ is that of this estimator for white rate
+    noise of each rest's own variance, and at least the standard error of the rest means; where the rests
+    disagree beyond their own noise (:func:`rest_disagreement`) σ covers their spread, with a sentence
+    appended to ``notes``.
+
+    The estimator is linear in the rates, o = Σ_j β_j w_j / Σ tc², and weights a rest by about its length
+    cubed (the slope's leverage): a 30 s rest outweighs a 5 s one 200 times. Its variance is therefore
+    Σ_rests var(w) Σ_j β_j² / (Σ tc²)², not the pooled mean's var(w)/N — on the paper session 2–3 times
+    larger (the pooled formula put the truth at up to 5 σ on clean simulated sessions).
     """
     num = np.zeros(3)
     den = 0.0
-    res_var = []
-    n_tot = 0
+    var_num = np.zeros(3)
     for s in segs:
         for iv in s.rests:
             t = s.data.t_imu[iv.i0 : iv.i1]
@@ -48,17 +55,35 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
             tc = t - t.mean()
             num += tc @ (th - th.mean(0))
             den += float(tc @ tc)
-            res_var.append(w.var(axis=0) * t.size)
-            n_tot += t.size
+            # the weight β_j of rate sample j in tc·θ (θ's trapezoid puts w_j in the steps on both sides of t_j):
+            # β_j = (dt_j S_j + dt_{j+1} S_{j+1}) / 2 with S_i = Σ_{k≥i} tc_k, dt_i = t_i − t_{i−1}
+            S = np.cumsum(tc[::-1])[::-1]
+            half = 0.5 * np.diff(t) * S[1:]
+            beta = np.zeros(t.size)
+            beta[:-1] += half
+            beta[1:] += half
+            var_num += w.var(axis=0) * float(beta @ beta)
     if den <= 0:
         raise FitError("gyro bias: no static interval (need a rest to fit eqs. 34–35)")
     o = num / den
-    sigma = np.sqrt(np.sum(res_var, axis=0) / n_tot / n_tot)
+    sigma = np.sqrt(var_num) / den
     # Rests far apart in time see a bias that moved (temperature, instability): the white-noise σ is
     # then optimistic. With several rests, σ is at least the standard error of their means' scatter.
-    means = np.array([s.data.gyro[iv.i0:iv.i1].mean(0) for s in segs for iv in s.rests if iv.n >= 3])
-    if means.shape[0] >= 2:
-        sigma = np.maximum(sigma, means.std(axis=0, ddof=1) / np.sqrt(means.shape[0]))
+    # Rests that disagree beyond their own noise (g-sensitivity, bias instability, temperature) leave the
+    # bias at any one moment known only to their spread: a σ is a promise, it must cover that spread.
+    rests = [s.data.gyro[iv.i0:iv.i1] for s in segs for iv in s.rests if iv.n >= 3]
+    if len(rests) >= 2:
+        means = np.array([w.mean(0) for w in rests])
+        se = np.array([w.std(0) / np.sqrt(w.shape[0]) for w in rests])
+        spread = means.std(axis=0, ddof=1)
+        chi2, bar, disagree = rest_disagreement(means, se)
+        sigma = np.where(disagree, np.maximum(sigma, spread), np.maximum(sigma, spread / np.sqrt(len(rests))))
+        if disagree.any() and notes is not None:
+            ax = [a for a, d in zip("xyz", disagree, strict=True) if d]
+            notes.append(f"gyro bias: the {len(rests)} rests disagree beyond their noise on {', '.join(ax)} "
+                         f"(χ² {', '.join(f'{c:.0f}' for c in chi2[disagree])} against {bar:.0f} on "
+                         f"{len(rests) - 1} dof; spread {', '.join(f'{x:.2g}' for x in spread[disagree])} rad/s): "
+                         "σ widened to the spread (g-sensitivity, instability or temperature; `diagnose` names it)")
     # Values on a lattice coarser than the noise (RAW_IMU: 1 mrad/s) do not average out: the mean of
     # held readings can be off by up to half a step. σ is floored at q/√12 where the noise is below q.
     w_all = np.concatenate([s.data.gyro[iv.i0:iv.i1] for s in segs for iv in s.rests])
@@ -71,6 +96,19 @@ def gyro_bias_cumsum(segs: list[Segmentation]) -> tuple[Array, Array]:
         if q > 0 and (np.std(w_all[:, k]) < 0.6 * q or abs(q - 1e-3) < 1e-9):
             sigma[k] = max(sigma[k], q / np.sqrt(12))
     return o, sigma
+
+
+def rest_disagreement(means: Array, se: Array) -> tuple[Array, float, NDArray[np.bool_]]:
+    """Whether K rest means (K, 3) rad/s disagree beyond their standard errors ``se`` (K, 3): per axis
+    χ² = Σ ((m_i − m̄)/se_i)² on K − 1 degrees of freedom against the bar K − 1 + 5·√(2(K − 1)) (5 σ of
+    the χ² above its mean). A rest with se = 0 (readings held on a lattice) counts only where its mean
+    differs. Returns (χ² (3,), bar, disagree (3,) bool)."""
+    k = means.shape[0]
+    d = means - means.mean(axis=0)
+    z = np.divide(d, se, out=np.where(np.abs(d) > 0, np.inf, 0.0), where=se > 0)
+    chi2 = np.sum(z**2, axis=0)
+    bar = (k - 1) + 5.0 * np.sqrt(2.0 * (k - 1))
+    return chi2, float(bar), chi2 > bar
 
 
 def gyro_axes_from_phases(segs: list[Segmentation], o: Array) -> dict[int, tuple[Array, float, float]]:
@@ -367,7 +405,7 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     """
     rep = StepReport("gyro")
     try:
-        o, sig_o = gyro_bias_cumsum(segs)
+        o, sig_o = gyro_bias_cumsum(segs, rep.warnings)
         bias_from = "rests (eqs. 34-35)"
     except FitError:
         o, sig_o, bias_from = None, None, None
@@ -430,6 +468,8 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
         sig_b = np.sqrt(np.abs(np.diag(Gi @ cov12[9:, 9:] @ Gi.T)))
         if o is not None:
             rep.figures["bias_rests_minus_any_rotation"] = (o - o_k).tolist()
+        if sig_o is not None and any(w.startswith("gyro bias: the") for w in rep.warnings):
+            sig_b = np.maximum(sig_b, sig_o)  # rests that disagree bound the bias σ however it is fitted
         o, sig_o, bias_from = o_k, sig_b, "any rotation, fitted with the matrix"
         G, cov = G_k, cov12[:9, :9]
         use_phase_sigma = False

@@ -36,6 +36,7 @@ from ..specs import G0
 from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, MIN_RATE_HZ, REQUIRES, Adequacy, assess, coverage
 from .analysis import Analysis, analyse, channel_mask, restrict
 from .detectors import Handedness, Saturated, candidates, find_axis_sign, find_saturation
+from .gaps import excluded_text, split_at_gaps
 from .motion import prepare
 from .regressors import SUBCHANNELS, Design
 from .resim import resimulate
@@ -198,6 +199,12 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     logs = [d for d in logs if d.n_imu > 0]
     if not logs:
         raise FitError("no IMU samples in the logs")
+    sources = list(dict.fromkeys(d.source for d in logs))
+    # holes in the time line (a NaN burst the reader dropped, a logging gap) cut a log into pieces
+    logs, excluded = split_at_gaps(logs)
+    if not logs:
+        raise FitError("no stretch between the holes in the logs is long enough to diagnose: "
+                       + "; ".join(excluded_text(e) for e in excluded))
     untestable: list[str] = []
     rng = np.random.default_rng(seed)
     findings: list[Finding] = []
@@ -350,9 +357,10 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         "adequacy": adq.to_dict(),
         "coverage": cov.to_dict(),
         "gyro_bias_rests": gbr,
+        "excluded": excluded,
     }
     untestable += _untestable(designs, an)
-    diag = Diagnosis(baseline, findings, ext_cal, untestable, {}, timing, [d.source for d in logs])
+    diag = Diagnosis(baseline, findings, ext_cal, untestable, {}, timing, sources)
     diag._parts = (an, null, chosen, model, full_an, full_null)  # type: ignore[attr-defined]
     if check and chosen:
         t0 = time.perf_counter()

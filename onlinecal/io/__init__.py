@@ -1,6 +1,6 @@
 """Log readers and writers, chosen by file extension: ``.csv`` (flat schema), ``.tlog`` (MAVLink
-telemetry), ``.bin`` (ArduPilot DataFlash),
-``.ulg`` (PX4 ULog, read only). Every reader streams :class:`ImuData` blocks and raises
+telemetry), ``.bin`` (ArduPilot DataFlash), ``.ulg`` (PX4 ULog: read through pyulog, written by
+:mod:`onlinecal.io.ulog_write`). Every reader streams :class:`ImuData` blocks and raises
 only :class:`LogError` for unusable input; the shared drop policy is in :mod:`onlinecal.io.validate`.
 """
 
@@ -91,7 +91,8 @@ def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
 
 def write_log(path: str | Path, data: ImuData) -> None:
     """Write ``data`` in the format of the extension: .csv (exact), .tlog (RAW_IMU, int16 units:
-    1 mG, 1 mrad/s, 1 mgauss), .bin (DataFlash: float32 IMU, int16 mgauss MAG)."""
+    1 mG, 1 mrad/s, 1 mgauss), .bin (DataFlash: float32 IMU, int16 mgauss MAG), .ulg (PX4 ULog: float32
+    sensor_accel/sensor_gyro/sensor_mag, µs stamps, the CAL_* parameters)."""
     ext = _ext(path)
     if ext == ".csv":
         write_csv(path, data)
@@ -99,6 +100,10 @@ def write_log(path: str | Path, data: ImuData) -> None:
         write_tlog(path, data)
     elif ext == ".bin":
         write_dataflash(path, data)
+    elif ext == ".ulg":
+        from onlinecal.io.ulog_write import write_ulog
+
+        write_ulog(path, data)
     else:
         raise ValueError(f"cannot write {ext or 'files without an extension'!r}; "
                          f"use one of {', '.join(EXTENSIONS)}")

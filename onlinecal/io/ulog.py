@@ -1,4 +1,5 @@
-"""PX4 ULog (``.ulg``) logs, read through pyulog (PX4's own parser). Read only: pyulog has no writer.
+"""PX4 ULog (``.ulg``) logs, read through pyulog (PX4's own parser); written (simulated sessions) by
+:mod:`onlinecal.io.ulog_write`.
 
 What is read, for IMU instance ``imu`` (the topics' multi-instance, default 0):
 

@@ -304,7 +304,7 @@ class OnlineCalibrator:
 
     def missing_motion(self) -> list[str]:
         """What motion is still needed to excite the parameters that are not yet excited."""
-        return missing_motion(self.observability(), self.lay)
+        return missing_motion(self.observability(), self.lay, self._coverage)
 
     def trace_rows(self, clear: bool = False) -> list[dict[str, float]]:
         """Trace rows (time, every estimate, its σ, last NIS) every ``trace_every_s``; ``clear`` drains."""

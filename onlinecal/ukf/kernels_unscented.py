@@ -2,9 +2,9 @@
 
 Same signatures and results as the numpy functions there (the reference); with the backend "numba"
 (:mod:`onlinecal.ukf.kernels`) each is one compiled call: :func:`sigma_points` (Cholesky factor in the
-filter's state order, :func:`~onlinecal.ukf.kernels.sigma_points_kernel`), :func:`predict_moments`
-(:func:`~onlinecal.ukf.kernels.unscented_kernel`) and :func:`update` (gating, damping, Schmidt gain and the
-covariance update of one block in :func:`~onlinecal.ukf.kernels.update_kernel`). With the backend "numpy"
+filter's state order, :func:`~onlinecal.ukf.kernels_update.sigma_points_kernel`), :func:`predict_moments`
+(:func:`~onlinecal.ukf.kernels_update.unscented_kernel`) and :func:`update` (gating, damping, Schmidt gain and the
+covariance update of one block in :func:`~onlinecal.ukf.kernels_update.update_kernel`). With the backend "numpy"
 they are the reference functions themselves.
 """
 
@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import kernels, unscented
+from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
 from .unscented import Gating, Measurement, UpdateResult
 
 Array = NDArray[np.float64]
@@ -37,7 +38,7 @@ def sigma_points(x: Array, P: Array, alpha: float, kappa: float, perm: NDArray[n
     n = x.shape[0]
     lam = alpha**2 * (n + kappa) - n
     order = _identity(n) if perm_id else np.asarray(perm, dtype=np.intp)
-    X, ok = kernels.sigma_points_kernel(x, P, lam + n, order)
+    X, ok = sigma_points_kernel(x, P, lam + n, order)
     if not ok:
         raise np.linalg.LinAlgError("Matrix is not positive definite")
     out: Array = X
@@ -48,7 +49,7 @@ def predict_moments(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, Ar
     """:func:`onlinecal.ukf.unscented.predict_moments`: (x_pred (n,), Y (2n + 1, n), P_pred (n, n))."""
     if kernels.backend() == "numpy":
         return unscented.predict_moments(X, Wm, Wc, q)
-    out: tuple[Array, Array, Array] = kernels.unscented_kernel(
+    out: tuple[Array, Array, Array] = unscented_kernel(
         np.ascontiguousarray(X, dtype=np.float64), Wm, Wc, np.ascontiguousarray(q, dtype=np.float64))
     return out
 
@@ -68,7 +69,7 @@ def update(Y: Array, x_pred: Array, P_pred: Array, meas: list[Measurement], Wm: 
         gated[i] = s != "rest"
         droppable[i] = s == "accel" and not gating.static
         gates[i] = gating.gates[s] if gated[i] else np.inf
-    x, P, nis, status, post_z, post_P, ok = kernels.update_kernel(
+    x, P, nis, status, post_z, post_P, ok = update_kernel(
         Y, x_pred, P_pred, np.concatenate([m.z for m in meas]), np.hstack([m.Z for m in meas]),
         np.concatenate([m.r for m in meas]), Wm, Wc, gated, droppable, gates, consider, float(damp),
         bool(want_post))

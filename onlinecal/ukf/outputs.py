@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..advice import faces_advice, faces_at_rest, missing_faces
 from ..model import PARAMS, RAW_UNITS, SENSORS, Calibration, SensorCalibration
 from .config import EXTENSIONS
 from .layout import AXES, DIP, index
@@ -92,9 +93,12 @@ def observability(sig: Array, prior_sigma: Array, lay: StateLayout, excited_rati
 _OTHER = {"x": "y or z", "y": "x or z", "z": "x or y"}
 
 
-def _advice(nm: str) -> str:
+def _advice(nm: str, faces: list[str] | None = None, rest_s: float | None = None) -> str | None:
     """The motion that excites parameter ``nm`` (small-angle eqs. 5–6: alpha_k couples the two axes other
-    than k; xi_z tilts y towards x, xi_y tilts z towards x, xi_x tilts z towards y)."""
+    than k; xi_z tilts y towards x, xi_y tilts z towards x, xi_x tilts z towards y). With the data's
+    ``faces`` at rest (:func:`onlinecal.advice.faces_at_rest`) an accelerometer bias/scale asks only for the
+    faces of its axis the data lacks, and nothing when it holds both; with ``rest_s`` ≥ 10 s at rest the
+    gyro bias asks for no more rest (None: no motion would help, the σ did not shrink for another reason)."""
     if nm == "dip":
         return "hold still with the magnetometer calibrated (dip of the field)"
     if nm.startswith("ext."):
@@ -102,6 +106,10 @@ def _advice(nm: str) -> str:
                 if nm.split(".")[1].startswith("temperature_bias") else
                 "turn with gravity along each gyro axis in turn (g-sensitivity)")
     s, p, ax = nm.split(".")
+    if s == "gyro" and p == "bias" and rest_s is not None and rest_s >= 10.0:
+        return None
+    if s == "accel" and p in ("bias", "scale") and faces is not None:
+        return faces_advice(missing_faces(faces, [ax]))
     if s == "gyro":
         return {"bias": "hold still (any attitude) for the gyro bias", "scale": f"turn about {ax}",
                 "alpha": f"turn about {_OTHER[ax]} (gyro axis alignment)",
@@ -113,9 +121,15 @@ def _advice(nm: str) -> str:
             else "rotate through all attitudes (e.g. a tumble) to sweep the field (mag)")
 
 
-def missing_motion(obs: dict[str, dict[str, Any]], lay: StateLayout) -> list[str]:
+def missing_motion(obs: dict[str, dict[str, Any]], lay: StateLayout,
+                   coverage: MotionCoverage | None = None) -> list[str]:
     """What motion is still needed to excite the parameters that are not yet excited (``obs`` from
-    :func:`observability`); the held gauge terms need none."""
+    :func:`observability`); the held gauge terms need none. With the filter's ``coverage`` the advice
+    derives from what the data holds (the faces at rest, the time at rest), never asking for a face or a
+    rest the session already has."""
+    faces = faces_at_rest(coverage.rest_dirs) if coverage is not None and coverage.rest_dirs else (
+        [] if coverage is not None else None)
+    rest_s = coverage.rest_s if coverage is not None else None
     held = set()
     if lay.gauge:
         held = {f"{lay.gauge}.{p}.{a}" for p in lay.gauge_terms for a in AXES}
@@ -123,8 +137,8 @@ def missing_motion(obs: dict[str, dict[str, Any]], lay: StateLayout) -> list[str
     for nm, o in obs.items():
         if o["excited"] or nm in held:
             continue
-        msg = _advice(nm)
-        if msg not in need:
+        msg = _advice(nm, faces, rest_s)
+        if msg is not None and msg not in need:
             need.append(msg)
     return need
 

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import kernels
+from .kernels_propagate import model_pair_kernel, propagate_numba, rot_log_rel_kernel
 from .layout import (
     ATT,
     DIP,
@@ -97,28 +98,11 @@ def propagate_block(
     dyn: NDArray[Any],
     gyro: tuple[Array, Array],
     b_extra: Array | None = None,
+    backend: str | None = None,
 ) -> BlockPrediction:
-    """Integrate the attitude of every sigma point over one block of L IMU samples (arguments and result:
-    :func:`propagate_block_numpy`), on the backend of :mod:`onlinecal.ukf.kernels` (``ONLINECAL_KERNELS``):
-    the compiled kernel, or the numpy reference."""
-    if kernels.backend() == "numpy":
-        return propagate_block_numpy(X, R_nom, w, dt, c_mag, dyn, gyro, b_extra)
-    o_g, M_g = gyro
-    R_end, f_body, h_body = kernels.propagate_numba(X, R_nom, w, dt, c_mag, dyn, o_g, M_g, b_extra, DIP)
-    return BlockPrediction(R_end, f_body, h_body, o_g[0], M_g[0])
-
-
-def propagate_block_numpy(
-    X: Array,
-    R_nom: Array,
-    w: Array,
-    dt: Array,
-    c_mag: Array | None,
-    dyn: NDArray[Any],
-    gyro: tuple[Array, Array],
-    b_extra: Array | None = None,
-) -> BlockPrediction:
-    """Integrate the attitude of every sigma point over one block of L IMU samples (numpy reference).
+    """Integrate the attitude of every sigma point over one block of L IMU samples, on ``backend`` (default:
+    that of :mod:`onlinecal.ukf.kernels`, ``ONLINECAL_KERNELS``): the compiled kernel
+    (:func:`onlinecal.ukf.kernels_propagate.propagate_kernel`) or the numpy reference (:func:`_propagate_numpy`).
 
     X (S, n) sigma points (δθ in X[:, 0:3], the gyro terms in X[:, 3:15], the dip in X[:, 39]);
     R_nom (3, 3) nominal attitude; w (L + 1, 3) rad/s the raw rates at the block's L samples and the one
@@ -132,8 +116,24 @@ def propagate_block_numpy(
     ``b_extra`` (S_d, L + 1, 3) rad/s an extra raw gyro bias per dynamic sigma point and sample (model
     extensions), or None.
     """
-    Xd = X[dyn]
     o_g, M_g = gyro
+    if (backend or kernels.backend()) == "numpy":
+        R_end, f_body, h_body = _propagate_numpy(X, R_nom, w, dt, c_mag, dyn, o_g, M_g, b_extra)
+    else:
+        R_end, f_body, h_body = propagate_numba(X, R_nom, w, dt, c_mag, dyn, o_g, M_g, b_extra, DIP)
+    return BlockPrediction(R_end, f_body, h_body, o_g[0], M_g[0])
+
+
+def propagate_block_numpy(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array | None, dyn: NDArray[Any],
+                          gyro: tuple[Array, Array], b_extra: Array | None = None) -> BlockPrediction:
+    """:func:`propagate_block` on the numpy reference, whatever the backend (what the kernels are tested
+    against)."""
+    return propagate_block(X, R_nom, w, dt, c_mag, dyn, gyro, b_extra, backend="numpy")
+
+
+def _products(w: Array, dt: Array, o_g: Array, M_g: Array, b_extra: Array | None) -> Array:
+    """Running products P_k = exp([Δθ_1]_x) ⋯ exp([Δθ_k]_x) (3, 3, S_d, L) of the dynamic sigma points'
+    calibrated rates (eq. 1 on the gyro), Δθ the trapezoid plus the two-sample coning term."""
     u = w[None] - o_g[:, None]
     if b_extra is not None:
         u = u - b_extra
@@ -144,32 +144,44 @@ def propagate_block_numpy(
     theta[0] += h * (o0[1] * o1[2] - o0[2] * o1[1])
     theta[1] += h * (o0[2] * o1[0] - o0[0] * o1[2])
     theta[2] += h * (o0[0] * o1[1] - o0[1] * o1[0])
-    P = prefix_products_cm(rodrigues_cm(theta))  # (3, 3, S_d, L)
+    P: Array = prefix_products_cm(rodrigues_cm(theta))
+    return P
+
+
+def _mag_means(X: Array, dyn: NDArray[Any], R0: Array, P: Array, c_mag: Array) -> Array:
+    """h_body (S, 3): mean over the block's mag samples of R(t_m)ᵀ h_world(dip) per sigma point, from the
+    start attitudes R0 (3, 3, S_d), the running products P (3, 3, S_d, L) and the weights c_mag (L + 1,)."""
+    # mean over the mag samples of R(t_m): c_0 R0 + Σ_k c_k R0 P_k  (S_d, 3, 3)
+    Pm = np.einsum("ijsl,l->ijs", P, c_mag[1:])
+    Pm[0, 0] += c_mag[0]
+    Pm[1, 1] += c_mag[0]
+    Pm[2, 2] += c_mag[0]
+    Q = np.einsum("iks,kjs->sij", R0, Pm)
+    dip = X[:, DIP]
+    hw = np.zeros((X.shape[0], 3))  # unit field in the world frame, :func:`onlinecal.ukf.layout.field_world`
+    hw[:, 1] = np.cos(dip)
+    hw[:, 2] = -np.sin(dip)
+    h_body: Array = hw @ Q[0]
+    h_body[dyn] = np.einsum("sj,sjk->sk", hw[dyn], Q)
+    return h_body
+
+
+def _propagate_numpy(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array | None, dyn: NDArray[Any],
+                     o_g: Array, M_g: Array, b_extra: Array | None) -> tuple[Array, Array, Array | None]:
+    """The numpy reference of :func:`propagate_block` (arguments there, gyro = (o_g, M_g)): (R_end, f_body,
+    h_body or None)."""
+    P = _products(w, dt, o_g, M_g, b_extra)  # (3, 3, S_d, L)
     # right (body-frame) error around the nominal, component-major (3, 3, S_d)
-    R0 = np.einsum("ij,jks->iks", R_nom, rodrigues_cm(np.ascontiguousarray(Xd[:, ATT].T)))
+    R0 = np.einsum("ij,jks->iks", R_nom, rodrigues_cm(np.ascontiguousarray(X[dyn][:, ATT].T)))
     R_end = np.einsum("iks,kjs->sij", R0, P[..., -1])
     # mean over the block of R_kᵀ e_z = (row z of R0 · mean_k P_k)ᵀ
     f_d = np.einsum("ks,kjsl->sj", R0[2], P) * (1.0 / P.shape[-1])
-    S = X.shape[0]
     # sigma points outside dyn share the mean's attitude history (row 0)
-    f_body = np.empty((S, 3))
+    f_body = np.empty((X.shape[0], 3))
     f_body[:] = f_d[0]
     f_body[dyn] = f_d
-    h_body = None
-    if c_mag is not None:
-        # mean over the mag samples of R(t_m): c_0 R0 + Σ_k c_k R0 P_k  (S_d, 3, 3)
-        Pm = np.einsum("ijsl,l->ijs", P, c_mag[1:])
-        Pm[0, 0] += c_mag[0]
-        Pm[1, 1] += c_mag[0]
-        Pm[2, 2] += c_mag[0]
-        Q = np.einsum("iks,kjs->sij", R0, Pm)
-        dip = X[:, DIP]
-        hw = np.zeros((S, 3))  # unit field in the world frame, :func:`onlinecal.ukf.layout.field_world`
-        hw[:, 1] = np.cos(dip)
-        hw[:, 2] = -np.sin(dip)
-        h_body = hw @ Q[0]
-        h_body[dyn] = np.einsum("sj,sjk->sk", hw[dyn], Q)
-    return BlockPrediction(R_end, f_body, h_body, o_g[0], M_g[0])
+    h_body = None if c_mag is None else _mag_means(X, dyn, R0, P, c_mag)
+    return R_end, f_body, h_body
 
 
 def predict_raw(X: Array, sensor: str, v_body: Array) -> Array:
@@ -184,11 +196,11 @@ def predict_raw(X: Array, sensor: str, v_body: Array) -> Array:
 
 def sensor_models(p: Array) -> tuple[Array, Array, Array]:
     """(o (N, 3), M (N, 3, 3), M⁻¹ (N, 3, 3)) of eq. 1 with eqs. 2–6 for N parameter rows p (N, 12), on
-    the kernel backend (:func:`onlinecal.ukf.kernels.model_pair_kernel`, or the numpy reference
+    the kernel backend (:func:`onlinecal.ukf.kernels_propagate.model_pair_kernel`, or the numpy reference
     :func:`onlinecal.ukf.layout.model_pair`)."""
     if kernels.backend() == "numpy":
         return model_pair(p)
-    out: tuple[Array, Array, Array] = kernels.model_pair_kernel(np.ascontiguousarray(p, dtype=np.float64))
+    out: tuple[Array, Array, Array] = model_pair_kernel(np.ascontiguousarray(p, dtype=np.float64))
     return out
 
 
@@ -199,5 +211,5 @@ def attitude_errors(R_end: Array) -> Array:
     if kernels.backend() == "numpy":
         out: Array = rot_log(R_end[0].T @ R_end)
         return out
-    out = kernels.rot_log_rel_kernel(np.ascontiguousarray(R_end, dtype=np.float64))
+    out = rot_log_rel_kernel(np.ascontiguousarray(R_end, dtype=np.float64))
     return out

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..advice import faces_advice, faces_at_rest, missing_faces
+
 Array = NDArray[np.float64]
 AXES = ("x", "y", "z")
 DEG = 180.0 / math.pi
@@ -200,7 +202,8 @@ def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str |
     mr, ang = cov.max_rate * DEG, cov.angle * DEG
     if s == "gyro":
         if p == "bias":
-            return (f"{cov.rest_s:.0f} s at rest in the log", "hold still (any attitude) for 10 s")
+            return (f"{cov.rest_s:.0f} s at rest in the log", "hold still (any attitude) for 10 s" if cov.rest_s < 10
+                    else "none: the log holds enough rest (its σ did not shrink below half its start value)")
         if p == "scale":
             return (f"turns about {ax} reached at most {mr[i]:.0f}°/s and {ang[i]:.0f}° in total",
                     f"a full turn (360°) about {ax} at 30°/s or more, against a still reference "
@@ -214,9 +217,11 @@ def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str |
     if s == "accel":
         axes = cov.gravity_axes()
         extra = (" (in flight the accelerometer measures thrust, not gravity: only rests count)" if vehicle else "")
-        if p in ("bias", "scale"):
+        if p in ("bias", "scale"):  # ask only for the faces of this axis the data lacks (onlinecal.advice)
+            need = faces_advice(missing_faces(faces_at_rest(cov.rest_dirs), [ax]))
             return (f"{len(cov.rest_dirs)} distinct attitude(s) at rest, gravity along {', '.join(axes) or 'no axis'}"
-                    + extra, f"hold still for 5 s with {ax} up and with {ax} down")
+                    + extra, need or f"none: the data holds {ax} up and {ax} down at rest (its σ did not shrink "
+                    "below half its start value, e.g. a start already as tight as this data allows)")
         return (f"{len(cov.rest_dirs)} distinct attitude(s) at rest" + extra,
                 "hold still in attitudes between the axes (e.g. 45° tilts), as in the paper's 12 positions")
     # mag

@@ -8,7 +8,9 @@ own motion and noise produce without any effect.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -24,6 +26,40 @@ from .score import FOLD_S, Gain, Problem, folds, robust_sigma, solve
 Array = NDArray[np.float64]
 Q_GRID = {"gyro": np.logspace(-6.5, -2.0, 10), "accel": np.logspace(-5.5, -1.0, 10)}
 # channels each candidate acts on (for the before/after RMS)
+# Set to 1 to let the BLAS library pick its own thread count in the small solves below (the previous
+# behaviour; benchmarks/bench_diagnose.py --flight times both paths in one run).
+THREADED_ENV = "ONLINECAL_DIAGNOSE_THREADED"
+_controller: Any = None
+
+
+@contextlib.contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """Run the enclosed linear algebra on one BLAS thread.
+
+    Every factorisation here is small (p ≤ a few hundred columns: nuisance + one candidate + the drift knots);
+    at that size OpenBLAS's threads only synchronise. Measured on a 10-minute 200 Hz flight (docs/
+    benchmarks-diagnose.md): 1211 Cholesky factorisations of 37–414 columns cost 0.12 s CPU on one thread
+    and 13.2 s with OpenBLAS's default two threads on a loaded two-core machine (each 180×180 factorisation
+    0.2 ms → 10–150 ms, the threads spin waiting for a core). Same arithmetic: a one-thread run is bit-for-bit
+    the same whichever path a caller came from; it differs from a threaded run only by rounding (see
+    tests/test_diagnose_speed.py). A no-op where threadpoolctl is missing or ``ONLINECAL_DIAGNOSE_THREADED=1``.
+    """
+    global _controller
+    if os.environ.get(THREADED_ENV, "") == "1":
+        yield
+        return
+    try:
+        if _controller is None:
+            from threadpoolctl import ThreadpoolController
+
+            _controller = ThreadpoolController()
+        ctx: Any = _controller.limit(limits=1, user_api="blas")
+    except ImportError:  # optional speed-up; the arithmetic is the same without it
+        ctx = contextlib.nullcontext()
+    with ctx:
+        yield
+
+
 CHANNELS = {
     "gyro": ("g_rest_x", "g_rest_y", "g_rest_z", "ka_x", "ka_y", "ka_z", "km_x", "km_y", "km_z"),
     "accel": ("a_norm", "ka_x", "ka_y", "ka_z", "dip"),
@@ -55,11 +91,13 @@ class Analysis:
     dropped: tuple[str, ...] = ()  # sub-channels left out (the baseline does not meet them)
 
     def score(self, base: list[str], key: str) -> Gain:
-        return self.problem.gain(base, self.blocks[key], self.priors)
+        with one_blas_thread():
+            return self.problem.gain(base, self.blocks[key], self.priors)
 
     def params(self, model: list[str], key: str) -> dict[str, Any]:
         cand = next(c for c in self.cands if c.key == key)
-        beta, cov = self.problem.fit(model + self.blocks[key], self.priors)
+        with one_blas_thread():
+            beta, cov = self.problem.fit(model + self.blocks[key], self.priors)
         k = sum(self.problem.blocks[b].stop - self.problem.blocks[b].start for b in self.blocks[key])
         b, C = beta[-k:], cov[-k:, -k:]
         if cand.effect == "bias_drift":
@@ -206,7 +244,9 @@ def _finish(designs: list[Design], cal: Calibration, cands: list[Candidate], blo
         if c.effect == "bias_drift":
             Ks = [drift_knots(d).size - 1 for d in designs]
             dts = [float(np.diff(drift_knots(d))[0]) for d in designs]
-            q[c.key], q_lr[c.key], pri = _fit_density(P, ["nuisance"], blocks[c.key], Ks, dts, Q_GRID[c.sensor])
+            with one_blas_thread():
+                q[c.key], q_lr[c.key], pri = _fit_density(P, ["nuisance"], blocks[c.key], Ks, dts,
+                                                          Q_GRID[c.sensor])
             priors.update(pri)
     an = Analysis(P, designs, cal, cands, blocks, priors, q, q_lr, rows=rows, dropped=drop)
     for c in cands:

@@ -34,7 +34,7 @@ from ..io.base import ImuData
 from ..model import Calibration
 from ..specs import G0
 from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, MIN_RATE_HZ, REQUIRES, Adequacy, assess, coverage
-from .analysis import Analysis, analyse, channel_mask, restrict
+from .analysis import Analysis, analyse, channel_mask, one_blas_thread, restrict
 from .detectors import Handedness, Saturated, candidates, find_axis_sign, find_saturation
 from .gaps import excluded_text, split_at_gaps
 from .motion import prepare
@@ -184,6 +184,7 @@ def _baseline(logs: list[ImuData], g: float, calibration: Calibration | None) ->
     return _Given(calibration, [segment(d, floors) for d in logs], ["baseline calibration given (not fitted here)"])
 
 
+@one_blas_thread()  # small solves throughout: BLAS threads only spin (analysis.one_blas_thread)
 def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = True,
              calibration: Calibration | None = None, ukf: bool = True) -> Diagnosis:
     """Model-discrepancy discovery over the logs of one sensor unit (module docstring).

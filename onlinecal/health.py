@@ -12,6 +12,11 @@ A result is judged on what can be checked without the truth:
   sensor against its expectation, the measurement dimension d = 3 (a chi-square mean). Outside
   [d/2, 2d] → **degraded** (the noise model does not describe the data: the σ are not to be trusted), above
   10 d → **failed** (the estimate does not describe the data at all).
+  On a vehicle, the accelerometer updates whose R carries the modelled vehicle acceleration (σ_v² τ_v/Δt,
+  :mod:`onlinecal.ukf.vehicle`) are summarised apart (the sensor's ``"vehicle"`` figures,
+  :mod:`onlinecal.ukf.health`): their NIS is below d by design whenever the vehicle accelerates less than
+  the bound, so only a mean *above* 2 d (the bound did not cover the flight) → **degraded**, above 10 d →
+  **failed**; the two-sided band judges the updates whose R is the sensor's noise (rests, the ground).
 * **divergences** and **saturation** events of the filter → **degraded**, each counted in words.
 * **coverage** of the magnetometer data (:func:`mag_coverage`), when the raw samples are given: the
   share of 32 equal direction cells on the calibrated unit sphere that hold samples. Below 40 % → the
@@ -132,7 +137,33 @@ def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[
             out.append(("degraded", f"{s}: mean NIS {m:.3g} outside [{lo:g}, {hi:g}] ({NIS_DOF} expected): {how}; "
                                     "its σ are not to be trusted"))
         figs[s] = {"mean": m, "windows": w, "expected": NIS_DOF, "band": [lo, hi], "status": status}
+    for s, st in nis.items():
+        veh = st.get("vehicle") if isinstance(st, dict) else None
+        if isinstance(veh, dict):
+            vf, figs[s + "_vehicle"] = _vehicle_nis_check(s, veh)
+            out += vf
     return out, figs
+
+
+def _vehicle_nis_check(sensor: str, st: dict[str, Any]) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+    """One-sided judgement of the vehicle-disturbed updates' mean NIS (see the module doc): the disturbance
+    is a bound, so a mean below d is expected; above 2 d the bound did not cover the vehicle's motion."""
+    raw_m, w = st.get("mean"), int(st.get("windows") or 0)
+    m = float(raw_m) if isinstance(raw_m, (int, float)) else math.nan
+    hi = NIS_OK[1] * NIS_DOF
+    fig: dict[str, Any] = {"mean": m if math.isfinite(m) else None, "windows": w, "expected": f"≤ {NIS_DOF}",
+                           "band": [0.0, hi]}
+    if not math.isfinite(m) or (w < NIS_MIN_WINDOWS and not (w >= 1 and m > NIS_FAILED * NIS_DOF)):
+        return [], dict(fig, status="too few updates")
+    if m > NIS_FAILED * NIS_DOF:
+        return [("failed", f"{sensor} in flight: mean NIS {m:.4g} with the vehicle acceleration modelled "
+                           f"({NIS_DOF} at most expected): the calibration does not describe the data")], \
+            dict(fig, status="failed")
+    if m > hi:
+        return [("degraded", f"{sensor} in flight: mean NIS {m:.3g} above {hi:g} with the vehicle acceleration "
+                             "modelled: the vehicle accelerated beyond the modelled bound or the calibration is "
+                             "off; its σ are not to be trusted")], dict(fig, status="degraded")
+    return [], dict(fig, status="ok")
 
 
 def _gate_check(sensor: str, st: dict[str, Any]) -> tuple[str, str] | None:

@@ -470,7 +470,10 @@ class OnlineCalibrator:
             self._commit(x_pred, P_pred, tl)
             return
         # not at rest (rests go to _rest_step): an accel outlier is motion the model lacks, dropped
+        # a vehicle-disturbed accel NIS is judged apart, against σ_v² (.health.NisMonitor)
+        self._nis.inflated = var_v / self.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
         res = self._update(Y, x_pred, P_pred, meas, False, tl, damp=self.config.update_damping)
+        self._nis.inflated = 0.0
         self._commit(res.x, res.P, tl)
 
     def _rest_step(self, B: Blocks, b: int, t: Array, T: Array, n: dict[str, float], held: dict[str, bool],

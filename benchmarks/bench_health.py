@@ -12,6 +12,7 @@ directions: bad results the verdict called ok (missed) and good results it did n
 from __future__ import annotations
 
 import argparse
+import signal
 import time
 from typing import Any
 
@@ -62,8 +63,24 @@ def main() -> None:
     a = ap.parse_args()
     tally: dict[tuple[str, str], dict[str, int]] = {}
     print(f"{'profile':<7} {'seed':>4} {'stage':<6} {'verdict':<9} {'worst z':>8} {'term':<16} {'NIS out':>7}  reasons")
-    for prof in a.profiles.split(","):
-        for seed in range(a.seeds):
+    signal.signal(signal.SIGTERM, _stop)  # kill PID: the tally of what finished is still printed
+    try:
+        _runs(a, tally)
+    except KeyboardInterrupt:
+        print("\nstopped before the last seed finished: the tally holds the results printed above")
+    print("\nprofile stage   good→ok good→not-ok (false alarm)  bad→not-ok bad→ok (missed)")
+    for (prof, stage), t in tally.items():
+        print(f"{prof:<7} {stage:<7} {t['good_ok']:>7} {t['good_not_ok']:>25} {t['bad_not_ok']:>11} {t['bad_ok']:>15}")
+
+
+def _stop(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _runs(a: argparse.Namespace, tally: dict[tuple[str, str], dict[str, int]]) -> None:
+    # seeds outermost: a run stopped early holds the same count for every profile
+    for seed in range(a.seeds):
+        for prof in a.profiles.split(","):
             sim = simulate(prof, seed)
             truth = sim.truth.calibration
             mag = sim.data.mag if sim.data.n_mag else None
@@ -85,9 +102,6 @@ def main() -> None:
                 print(f"{prof:<7} {seed:>4} {stage:<6} {h['verdict']:<9} {z:>8.1f} {term:<16} {str(nis_out(h)):>7}  "
                       + " | ".join(r_[:70] for r_ in h["reasons"]), flush=True)
             print(f"        ({time.perf_counter() - t0:.0f} s)", flush=True)
-    print("\nprofile stage   good→ok good→not-ok (false alarm)  bad→not-ok bad→ok (missed)")
-    for (prof, stage), t in tally.items():
-        print(f"{prof:<7} {stage:<7} {t['good_ok']:>7} {t['good_not_ok']:>25} {t['bad_not_ok']:>11} {t['bad_ok']:>15}")
 
 
 if __name__ == "__main__":

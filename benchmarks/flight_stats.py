@@ -14,7 +14,10 @@ frame (its gauge, :func:`onlinecal.ukf.gauge.align_gauge`) and report
 * the real-time factor.
 
     PYTHONPATH=. python benchmarks/flight_stats.py [--seeds 20] [--start 0] [--minutes 10] [--rate 200]
-        [--profiles multirotor,fixedwing] [--starts cold,bench]
+        [--profiles multirotor,fixedwing] [--starts cold,bench[,wrongbench]]
+
+``wrongbench`` starts from the bench calibration with a 0.3 m/s² accelerometer bias error its σ does not
+cover: the runs the health verdict must call not ok.
 
 The machine this runs on may be shared: the real-time factor is wall-clock and says so.
 """
@@ -31,7 +34,7 @@ from scipy.stats import chi2
 
 from onlinecal.batch.pipeline import run_batch
 from onlinecal.health import assess
-from onlinecal.model import PARAMS, SENSORS, Calibration
+from onlinecal.model import PARAMS, SENSORS, Calibration, SensorCalibration
 from onlinecal.sim import simulate
 from onlinecal.ukf import replay
 from onlinecal.ukf.filter import UKFConfig
@@ -100,12 +103,27 @@ def bench_calibration(truth: Calibration, seed: int) -> Calibration:
     return run_batch([sim.data]).calibration
 
 
+WRONG_ACCEL_BIAS = np.array([0.0, 0.0, 0.3])  # m/s²
+
+
+def wrong_bench(bench: Calibration | None) -> Calibration:
+    """A broken start (issue 12's other direction): the bench calibration with its accelerometer z bias
+    0.3 m/s² off while its σ still says ~1e-3 — a unit re-mounted or recalibrated since, a stale file.
+    The replay must end with that term > 5σ from the truth and the verdict not ok."""
+    assert bench is not None and bench.accel is not None
+    a = bench.accel
+    return bench.replace(accel=SensorCalibration(a.bias + WRONG_ACCEL_BIAS, a.matrix, a.sigma))
+
+
 def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10.0, rate: float = 200.0,
                config: UKFConfig | None = None) -> FlightRun:
-    """One flight, replayed cold (``start="cold"``) or from the bench calibration (``"bench"``)."""
+    """One flight, replayed cold (``start="cold"``), from the bench calibration (``"bench"``) or from a
+    wrong one (``"wrongbench"``, :func:`wrong_bench`)."""
     sim = simulate(profile, seed, duration=60.0 * minutes, imu_rate=rate, mag_rate=50.0)
     truth = sim.truth.calibration
     init = None if start == "cold" else bench_calibration(truth, seed)
+    if start == "wrongbench":
+        init = wrong_bench(init)
     t0 = time.perf_counter()
     res = replay([sim.data], init, config)
     wall = time.perf_counter() - t0

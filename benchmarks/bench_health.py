@@ -90,10 +90,11 @@ def _runs(a: argparse.Namespace, tally: dict[tuple[str, str], dict[str, int]]) -
             except FitError as e:
                 print(f"{prof:<7} {seed:>4} batch  FitError {e}")
                 continue
-            results = [("batch", b.calibration, assess(b.calibration, mag_raw=mag))]
+            raw = {"gyro": sim.data.gyro, "accel": sim.data.acc}  # as the command line passes them (cli._raw)
+            results = [("batch", b.calibration, assess(b.calibration, mag_raw=mag, raw=raw))]
             r = replay([sim.data], b.calibration)
             results.append(("online", r.calibration, assess(r.calibration, nis=r.nis, events=r.events,
-                                                           observability=r.observability, mag_raw=mag)))
+                                                           observability=r.observability, mag_raw=mag, raw=raw)))
             for stage, cal, h in results:
                 z, term = worst_z(cal, truth, h["checks"].get("undetermined", []))
                 bad = z > 5 or nis_out(h)

@@ -17,6 +17,13 @@ A result is judged on what can be checked without the truth:
   :mod:`onlinecal.ukf.health`): their NIS is below d by design whenever the vehicle accelerates less than
   the bound, so only a mean *above* 2 d (the bound did not cover the flight) → **degraded**, above 10 d →
   **failed**; the two-sided band judges the updates whose R is the sensor's noise (rests, the ground).
+* **gravity at rest** (:func:`gravity_checks`), when the raw samples are given: where the calibrated
+  gyro and accelerometer are still (blocks of :data:`REST_BLOCK` samples), the calibrated specific force is
+  gravity, so its norm must be g within what the accelerometer's σ along it allow (5σ) plus the spread of
+  local gravity on Earth (:data:`G_LOCAL_TOL`). Beyond → **degraded**. The filter cannot always show this
+  in its NIS: its quasi-static weighting reads a norm away from g as a linear acceleration and lowers the
+  accelerometer's weight (a bench file 0.3 m/s² off along z, σ 1e-3, replayed on a flight: 9 of 20 runs'
+  accel NIS stayed in band).
 * **divergences** and **saturation** events of the filter → **degraded**, each counted in words.
 * **coverage** of the magnetometer data (:func:`mag_coverage`), when the raw samples are given: the
   share of 32 equal direction cells on the calibrated unit sphere that hold samples. Below 40 % → the
@@ -59,6 +66,16 @@ RAIL_MIN = {"gyro": 1.0, "accel": 19.6}  # rad/s, m/s²: no rail is below (250 �
 RAIL_SAMPLES = 10  # samples at an axis' largest magnitude that make it a rail, not a peak
 UNDETERMINED_RATIO = 0.5  # posterior σ / prior σ above this: the data did not determine the term
 COVERAGE_MIN = 0.4
+# gravity at rest: blocks of REST_BLOCK samples whose calibrated gyro is below REST_RATE rad/s (mean and
+# per-axis σ) and whose calibrated accel per-axis σ is below REST_ACC m/s² (the spec noise of a MEMS part
+# is 0.01–0.03 m/s² per sample up to 1 kHz; any running motor is ≥ 0.3); at least REST_MIN_BLOCKS of them
+REST_BLOCK = 50
+REST_RATE = 0.01
+REST_ACC = 0.05
+REST_MIN_BLOCKS = 10
+# local gravity on the Earth's surface spans 9.764 (high mountains, equator) – 9.834 m/s² (poles): within
+# 0.05 m/s² of the standard value the norm check cannot tell a calibration error from the place
+G_LOCAL_TOL = 0.05
 COVERAGE_CELLS = 32
 COVERAGE_MIN_SAMPLES = 3  # per cell
 
@@ -242,6 +259,53 @@ def mag_coverage(mag_cal: Any, cells: int = COVERAGE_CELLS) -> float:
     return float(np.mean(counts >= COVERAGE_MIN_SAMPLES))
 
 
+def gravity_checks(cal: Calibration, raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+    """At rest the calibrated specific force is gravity: (verdict, reason) when the median of |f| − g over
+    the still blocks of ``raw`` (sensor → raw samples (N, 3), gyro and accel on one time base) is beyond
+    5σ of what the accelerometer's σ allow along f, plus :data:`G_LOCAL_TOL`; and the figures. Nothing is
+    judged without both sensors' calibration or with fewer than :data:`REST_MIN_BLOCKS` still blocks."""
+    from .specs import G0
+
+    fig: dict[str, Any] = {"rest_blocks": 0}
+    if not raw or cal.accel is None or cal.gyro is None:
+        return [], fig
+    w, a = raw.get("gyro"), raw.get("accel")
+    if w is None or a is None:
+        return [], fig
+    w, a = np.asarray(w, float).reshape(-1, 3), np.asarray(a, float).reshape(-1, 3)
+    n = min(w.shape[0], a.shape[0]) // REST_BLOCK * REST_BLOCK
+    if n < REST_BLOCK * REST_MIN_BLOCKS:
+        return [], fig
+    with np.errstate(all="ignore"):
+        wc = cal.gyro.apply(w[:n]).reshape(-1, REST_BLOCK, 3)
+        fc = cal.accel.apply(a[:n]).reshape(-1, REST_BLOCK, 3)
+        still = ((np.abs(wc.mean(1)) < REST_RATE).all(1) & (wc.std(1) < REST_RATE).all(1)
+                 & (fc.std(1) < REST_ACC).all(1))
+    still &= np.isfinite(fc).all((1, 2)) & np.isfinite(wc).all((1, 2))
+    k = int(still.sum())
+    fig["rest_blocks"] = k
+    if k < REST_MIN_BLOCKS:
+        return [], fig
+    f = fc[still].mean(1)  # (k, 3) m/s²
+    dev = float(np.median(np.linalg.norm(f, axis=1) - G0))
+    u = np.median(f / np.linalg.norm(f, axis=1, keepdims=True), axis=0)
+    sig = cal.accel.sigma or {}
+    sb = np.asarray(sig.get("bias", np.zeros(3)), float).reshape(3)
+    ss = np.asarray(sig.get("scale", np.zeros(3)), float).reshape(3)
+    sb, ss = np.where(np.isfinite(sb), sb, np.inf), np.where(np.isfinite(ss), ss, np.inf)
+    # f_i = s_i (raw_i − o_i) along each axis (eqs. 1–2, small angles): δf_i = (f_i/s_i) δs_i − s_i δo_i,
+    # independent; |f| moves by Σ u_i δf_i
+    sc = np.abs(np.asarray(cal.accel.scale, float))
+    s_f = float(np.sqrt(np.sum(u**2 * ((sc * sb) ** 2 + (G0 / sc * ss) ** 2))))
+    tol = 5.0 * s_f + G_LOCAL_TOL
+    fig.update({"norm_minus_g": dev, "sigma": s_f, "tolerance": tol})
+    if abs(dev) > tol:
+        return [("degraded", f"accel: at rest ({k} still blocks) the calibrated specific force is {dev:+.3g} m/s² "
+                             f"from g (allowed {tol:.2g}: 5σ of the calibration along gravity + local gravity): "
+                             "its bias or scale along gravity is off, and its σ are not to be trusted")], fig
+    return [], fig
+
+
 def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -> list[str]:
     """Terms the data did not determine: posterior σ / prior σ > ½ (the filter's observability), or, with
     no observability, a term without σ of a sensor that has σ for others (the batch left it at its start
@@ -289,6 +353,8 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
     ef, ev = event_checks(events)
     found += ef
     checks.update(ev)
+    gf, checks["gravity_at_rest"] = gravity_checks(cal, raw)
+    found += gf
     rf, rails = rail_checks(raw)
     if not ev.get("saturation"):  # the filter's own saturation event already says it
         found += rf

@@ -149,7 +149,9 @@ def test_clean_flight_is_ok_and_a_wrong_bench_calibration_is_not(tmp_path):
     assert z > 5  # truth: the result is wrong
     assert r.returncode in (4, 5), r.stderr
     assert res["health"]["verdict"] != "ok"
-    assert any(rs.startswith("accel") and "NIS" in rs for rs in res["health"]["reasons"]), res["health"]["reasons"]
+    # named: the accelerometer, by its NIS at rest or by its specific force at rest (gravity_checks)
+    assert any(rs.startswith("accel") and ("NIS" in rs or "at rest" in rs) for rs in res["health"]["reasons"]), \
+        res["health"]["reasons"]
 
 
 # -- issue 10 / 12 Numbers, reduced seeds (benchmarks/flight_stats.py runs 20) ----------------------
@@ -186,3 +188,66 @@ def test_wrong_bench_flights_are_not_ok(profile):
         r = fs.run_flight(profile, seed, "wrongbench")
         assert r.bad
         assert r.verdict != "ok"
+
+
+# -- gravity at rest (onlinecal.health.gravity_checks) ------------------------------------------------
+
+def _still_raw(cal: Calibration, g_body: np.ndarray, n: int, rng: np.random.Generator,
+               acc_noise: float = 0.01, rate: np.ndarray | None = None) -> dict:
+    """Raw gyro/accel of a body at rest (specific force ``g_body``, m/s²) through the sensor model of
+    ``cal`` (raw = M⁻¹ f + o), with white noise."""
+    f = np.tile(g_body, (n, 1)) + rng.normal(0, acc_noise, (n, 3))
+    w = np.tile(np.zeros(3) if rate is None else rate, (n, 1)) + rng.normal(0, 7e-4, (n, 3))
+    assert cal.accel is not None and cal.gyro is not None
+    return {"accel": cal.accel.inv().apply(f), "gyro": cal.gyro.inv().apply(w)}
+
+
+def _cal(bias_err: float = 0.0, sigma: float = 1e-3) -> tuple[Calibration, Calibration]:
+    """(truth, estimate): a unit with scales 1.02/0.98/1.01 and biases; the estimate's accel z bias is
+    ``bias_err`` m/s² off, its σ ``sigma`` for bias and scale."""
+    M = np.diag([1.02, 0.98, 1.01])
+    truth = Calibration(SensorCalibration(np.array([0.01, -0.02, 0.005]), M),
+                        SensorCalibration(np.array([0.1, -0.2, 0.15]), M), None)
+    sig = {k: np.full(3, sigma) for k in ("bias", "scale", "alpha", "xi")}
+    assert truth.accel is not None and truth.gyro is not None
+    est = Calibration(truth.gyro.with_sigma(sig),
+                      SensorCalibration(truth.accel.bias + np.array([0, 0, bias_err]), M, sig), None)
+    return truth, est
+
+
+def test_gravity_at_rest_catches_a_wrong_bias_its_sigma_does_not_cover():
+    """Raw samples from the truth's sensor model, at rest (|f| = G0, attitude level and tilted): the right
+    calibration passes, one 0.3 m/s² off along gravity with σ 1e-3 is degraded, the same with a cold σ
+    (0.5) is not judged wrong (5σ covers it), and a gravity 0.04 m/s² off G0 (a place on Earth) passes."""
+    from onlinecal.health import gravity_checks
+    from onlinecal.specs import G0
+
+    rng = np.random.default_rng(3)
+    truth, good = _cal()
+    _, wrong = _cal(0.3)
+    _, cold = _cal(0.3, sigma=0.5)
+    level = _still_raw(truth, np.array([0, 0, G0]), 2000, rng)
+    assert gravity_checks(good, level)[0] == []
+    out, fig = gravity_checks(wrong, level)
+    assert out and out[0][0] == "degraded" and "from g" in out[0][1]
+    assert fig["norm_minus_g"] == pytest.approx(-0.3, abs=0.01)
+    assert gravity_checks(cold, level)[0] == []
+    assert assess(wrong, raw=level)["verdict"] == "degraded"
+    tilted = _still_raw(truth, np.array([3.0, -4.0, np.sqrt(G0**2 - 25)]) * (G0 + 0.04) / G0, 2000, rng)
+    assert gravity_checks(good, tilted)[0] == []
+
+
+def test_gravity_at_rest_judges_only_still_blocks():
+    """Turning (0.5 rad/s) or vibrating (accel σ 0.3 m/s² per sample: a running motor) is not a rest: a
+    wrong calibration is then not judged by this check (too few still blocks), never falsely."""
+    from onlinecal.health import gravity_checks
+    from onlinecal.specs import G0
+
+    rng = np.random.default_rng(4)
+    truth, _ = _cal()
+    _, wrong = _cal(0.3)
+    turning = _still_raw(truth, np.array([0, 0, G0]), 2000, rng, rate=np.array([0, 0, 0.5]))
+    vibrating = _still_raw(truth, np.array([0, 0, G0]), 2000, rng, acc_noise=0.3)
+    for raw in (turning, vibrating):
+        out, fig = gravity_checks(wrong, raw)
+        assert out == [] and fig["rest_blocks"] == 0

@@ -25,7 +25,8 @@ A result is judged on what can be checked without the truth:
   accelerometer's weight (a bench file 0.3 m/s² off along z, σ 1e-3, replayed on a flight: 9 of 20 runs'
   accel NIS stayed in band).
 * **divergences** and **saturation** events of the filter → **degraded**, each counted in words.
-* **coverage** of the magnetometer data (:func:`mag_coverage`), when the raw samples are given: the
+* **coverage** of the magnetometer data (:func:`mag_coverage`), when the raw samples are given and the
+  magnetometer's bias or scale were fitted on them (:func:`_mag_fitted_here`): the
   share of 32 equal direction cells on the calibrated unit sphere that hold samples. Below 40 % → the
   ellipsoid fit (eq. 17) extrapolates and its bias and scale can be far further off than their σ →
   **degraded**.
@@ -306,6 +307,22 @@ def gravity_checks(cal: Calibration, raw: dict[str, Any] | None) -> tuple[list[t
     return [], fig
 
 
+def _mag_fitted_here(cal: Calibration, observability: dict[str, Any] | None) -> bool:
+    """Whether the magnetometer's bias or scale come from these samples, so that their coverage judges
+    them: always for a batch result (no observability); for an online one only where the filter used the
+    magnetometer and the data determined some mag bias or scale term (posterior σ < ½ prior σ). A cold
+    flight whose mag was never calibrated keeps its prior (listed as undetermined), and a flight started
+    from a bench file keeps the bench's mag: the flight's coverage says nothing about either (10-min
+    multirotor and fixed-wing flights sweep 22–28 % of the directions)."""
+    if not observability:
+        return True
+    online = cal.meta.get("online", {}) if isinstance(cal.meta, dict) else {}
+    if isinstance(online, dict) and online.get("mag_used") is False:
+        return False
+    return any(isinstance(v, dict) and isinstance(v.get("ratio"), (int, float)) and v["ratio"] <= UNDETERMINED_RATIO
+               for k, v in observability.items() if k.startswith(("mag.bias.", "mag.scale.")))
+
+
 def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -> list[str]:
     """Terms the data did not determine: posterior σ / prior σ > ½ (the filter's observability), or, with
     no observability, a term without σ of a sensor that has σ for others (the batch left it at its start
@@ -360,7 +377,7 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
         found += rf
     checks["rail_samples"] = rails
     notes: list[str] = []
-    if mag_raw is not None and cal.mag is not None:
+    if mag_raw is not None and cal.mag is not None and _mag_fitted_here(cal, observability):
         try:
             cov = mag_coverage(cal.mag.apply(np.asarray(mag_raw, float).reshape(-1, 3)))
         except (ValueError, TypeError):

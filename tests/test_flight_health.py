@@ -251,3 +251,26 @@ def test_gravity_at_rest_judges_only_still_blocks():
     for raw in (turning, vibrating):
         out, fig = gravity_checks(wrong, raw)
         assert out == [] and fig["rest_blocks"] == 0
+
+
+# -- magnetometer coverage judges only a mag fitted on these samples --------------------------------
+
+@pytest.mark.parametrize(("meta_online", "obs", "judged"), [
+    (None, None, True),  # a batch result: its ellipsoid was fitted on these samples
+    ({"mag_used": False}, {"mag.bias.x": {"ratio": 0.99}}, False),  # cold flight: mag never calibrated
+    ({"mag_used": True}, {"mag.bias.x": {"ratio": 0.98}, "mag.alpha.x": {"ratio": 0.2}}, False),  # bench's mag
+    ({"mag_used": True}, {"mag.bias.x": {"ratio": 0.3}}, True),  # the flight determined a mag bias
+])
+def test_mag_coverage_judges_only_a_mag_fitted_here(meta_online, obs, judged):
+    """A cap of 10 % of the field directions (a flight's band): degraded where the mag's bias/scale come
+    from these samples, not where the result keeps a prior or a bench file's mag."""
+    rng = np.random.default_rng(1)
+    sphere = rng.normal(size=(5000, 3))
+    cap = sphere[sphere[:, 2] / np.linalg.norm(sphere, axis=1) > 0.8]
+    sig = {k: np.full(3, 1e-4) for k in ("bias", "scale", "alpha", "xi")}
+    mag = SensorCalibration.from_params(bias=(0.24, 0.09, 0.07), scale=(1.9, 2.3, 1.96), sigma=sig)
+    cal = Calibration(None, None, mag, meta={"online": meta_online} if meta_online else {})
+    raw = mag.inv().apply(cap / np.linalg.norm(cap, axis=1, keepdims=True))
+    h = assess(cal, mag_raw=raw, observability=obs)
+    assert (h["verdict"] == "degraded") is judged, h["reasons"]
+    assert ("mag_coverage" in h["checks"]) is judged

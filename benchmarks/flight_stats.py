@@ -14,7 +14,10 @@ frame (its gauge, :func:`onlinecal.ukf.gauge.align_gauge`) and report
 * the real-time factor.
 
     PYTHONPATH=. python benchmarks/flight_stats.py [--seeds 20] [--start 0] [--minutes 10] [--rate 200]
-        [--profiles multirotor,fixedwing] [--starts cold,bench]
+        [--profiles multirotor,fixedwing] [--starts cold,bench[,wrongbench]]
+
+``wrongbench`` starts from the bench calibration with a 0.3 m/s² accelerometer bias error its σ does not
+cover: the runs the health verdict must call not ok.
 
 The machine this runs on may be shared: the real-time factor is wall-clock and says so.
 """
@@ -30,13 +33,15 @@ import numpy as np
 from scipy.stats import chi2
 
 from onlinecal.batch.pipeline import run_batch
-from onlinecal.model import PARAMS, SENSORS, Calibration
+from onlinecal.health import assess
+from onlinecal.model import PARAMS, SENSORS, Calibration, SensorCalibration
 from onlinecal.sim import simulate
 from onlinecal.ukf import replay
 from onlinecal.ukf.filter import UKFConfig
 from onlinecal.ukf.gauge import align_gauge
 
 NAMES = [f"{s}.{p}.{a}" for s in SENSORS for p in PARAMS for a in "xyz"]
+GYRO_BIAS = np.array([nm.startswith("gyro.bias.") for nm in NAMES])
 
 
 @dataclass
@@ -53,6 +58,11 @@ class FlightRun:
     events: dict[str, int]
     realtime: float
     observability: dict[str, Any]
+    verdict: str = "ok"  # onlinecal.health.assess on the replay, as the command line judges it
+    reasons: tuple[str, ...] = ()
+    nis_out: bool = False  # some NIS stream's mean outside its band (the health check's figures)
+    accel_nis: float = float("nan")  # mean NIS of the accel updates whose R is the sensor noise (rests)
+    accel_vehicle_nis: float = float("nan")  # vehicle-disturbed accel updates, NIS·k against σ_v²
 
     @property
     def coverage(self) -> float:
@@ -73,6 +83,19 @@ class FlightRun:
         d = self.determined & ~self.held
         return float(np.sum(self.z[d] ** 2)), int(d.sum())
 
+    @property
+    def nees_determined_no_gyro_bias(self) -> tuple[float, int]:
+        """The same without the gyro bias (whose σ is floored by the zero-rate update's 5e-5 rad/s
+        allowance, :attr:`UKFConfig.rest_rate_sigma`, which covers the Earth's rotation a real gyro sees at
+        rest and the simulator does not produce)."""
+        d = self.determined & ~self.held & ~GYRO_BIAS
+        return float(np.sum(self.z[d] ** 2)), int(d.sum())
+
+    @property
+    def bad(self) -> bool:
+        """Truth says the result is not to be trusted: a term > 5σ off, or a NIS out of its band."""
+        return bool(np.abs(self.z[~self.held]).max() > 5 or self.nis_out)
+
 
 def bench_calibration(truth: Calibration, seed: int) -> Calibration:
     """The batch result of a paper session of the same unit (same truth), another seed's motion/noise."""
@@ -80,12 +103,27 @@ def bench_calibration(truth: Calibration, seed: int) -> Calibration:
     return run_batch([sim.data]).calibration
 
 
+WRONG_ACCEL_BIAS = np.array([0.0, 0.0, 0.3])  # m/s²
+
+
+def wrong_bench(bench: Calibration | None) -> Calibration:
+    """A broken start (issue 12's other direction): the bench calibration with its accelerometer z bias
+    0.3 m/s² off while its σ still says ~1e-3 — a unit re-mounted or recalibrated since, a stale file.
+    The replay must end with that term > 5σ from the truth and the verdict not ok."""
+    assert bench is not None and bench.accel is not None
+    a = bench.accel
+    return bench.replace(accel=SensorCalibration(a.bias + WRONG_ACCEL_BIAS, a.matrix, a.sigma))
+
+
 def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10.0, rate: float = 200.0,
                config: UKFConfig | None = None) -> FlightRun:
-    """One flight, replayed cold (``start="cold"``) or from the bench calibration (``"bench"``)."""
+    """One flight, replayed cold (``start="cold"``), from the bench calibration (``"bench"``) or from a
+    wrong one (``"wrongbench"``, :func:`wrong_bench`)."""
     sim = simulate(profile, seed, duration=60.0 * minutes, imu_rate=rate, mag_rate=50.0)
     truth = sim.truth.calibration
     init = None if start == "cold" else bench_calibration(truth, seed)
+    if start == "wrongbench":
+        init = wrong_bench(init)
     t0 = time.perf_counter()
     res = replay([sim.data], init, config)
     wall = time.perf_counter() - t0
@@ -114,9 +152,21 @@ def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10
     kinds: dict[str, int] = {}
     for ev in res.events:
         kinds[ev["kind"]] = kinds.get(ev["kind"], 0) + 1
+    h = assess(cal, nis=res.nis, events=res.events, observability=res.observability,
+               raw={"gyro": sim.data.gyro, "accel": sim.data.acc},  # as the command line (cli.online_health)
+               mag_raw=sim.data.mag if sim.data.n_mag else None)
+    figs = h["checks"].get("nis", {})
+    nis_out = any(v.get("mean") is not None and "band" in v and not v["band"][0] <= v["mean"] <= v["band"][1]
+                  for v in figs.values())
     return FlightRun(profile, start, seed, np.array(z), np.array(err), np.array(held), det, gb,
                      kinds.get("divergence", 0), kinds, sim.data.duration / wall,
-                     cal.meta.get("online", {}).get("observability", {}))
+                     cal.meta.get("online", {}).get("observability", {}), h["verdict"], tuple(h["reasons"]),
+                     nis_out, _mean(figs.get("accel")), _mean(figs.get("accel_vehicle")))
+
+
+def _mean(fig: dict[str, Any] | None) -> float:
+    m = (fig or {}).get("mean")
+    return float(m) if isinstance(m, (int, float)) else float("nan")
 
 
 def summary(runs: list[FlightRun]) -> list[str]:
@@ -150,6 +200,22 @@ def summary(runs: list[FlightRun]) -> list[str]:
         out.append(f"    NEES over the determined terms, all seeds: {nd[:, 0].sum():.1f} for {k_d} dof, 99 % band "
                    f"[{lo_d:.1f}, {hi_d:.1f}] (terms at their prior are left out: the truth is not drawn from the "
                    "cold prior, so their z only says the prior was wide)")
+        nb = np.array([r.nees_determined_no_gyro_bias for r in rs])
+        k_b = int(nb[:, 1].sum())
+        if k_b:
+            lo_b, hi_b = chi2.ppf([0.005, 0.995], k_b)
+            out.append(f"    the same without the gyro bias: {nb[:, 0].sum():.1f} for {k_b} dof, 99 % band "
+                       f"[{lo_b:.1f}, {hi_b:.1f}]; gyro bias alone: {nd[:, 0].sum() - nb[:, 0].sum():.1f} for "
+                       f"{k_d - k_b} dof (σ floored by the 5e-5 rad/s zero-rate allowance)")
+        else:
+            out.append("    no determined term besides the gyro bias")
+        ver = [r.verdict for r in rs]
+        good = [not r.bad for r in rs]
+        out.append(f"    health: ok {ver.count('ok')}/{n}; good (no term > 5σ, NIS in band) → ok "
+                   f"{sum(g and v == 'ok' for g, v in zip(good, ver, strict=True))}/{sum(good)}, bad → not ok "
+                   f"{sum((not g) and v != 'ok' for g, v in zip(good, ver, strict=True))}/{n - sum(good)}; accel "
+                   f"mean NIS at rest {np.nanmean([r.accel_nis for r in rs]):.2f} (3 expected), in flight "
+                   f"(against σ_v²) {np.nanmean([r.accel_vehicle_nis for r in rs]):.2f} (≤ 3 expected)")
         # which terms are determined, on how many seeds
         frac = det.mean(0)
         out.append("    determined on ≥ half the seeds: "
@@ -169,28 +235,38 @@ def main() -> None:
     ap.add_argument("--profiles", default="multirotor,fixedwing")
     ap.add_argument("--starts", default="cold,bench")
     ap.add_argument("--save", default=None, metavar="JSON", help="per-run z-scores and flags")
+    ap.add_argument("--rest-rate-sigma", type=float, default=None,
+                    help="diagnostic only: the zero-rate update's allowance (rad/s; default the config's)")
     args = ap.parse_args()
+    config = UKFConfig(rest_rate_sigma=args.rest_rate_sigma) if args.rest_rate_sigma is not None else None
     runs = []
-    for prof in args.profiles.split(","):
-        for st in args.starts.split(","):
-            for seed in range(args.start, args.start + args.seeds):
-                r = run_flight(prof, seed, st, args.minutes, args.rate)
+    # seeds outermost: a run stopped early still holds the same count for every profile and start
+    for seed in range(args.start, args.start + args.seeds):
+        for prof in args.profiles.split(","):
+            for st in args.starts.split(","):
+                r = run_flight(prof, seed, st, args.minutes, args.rate, config)
                 runs.append(r)
                 print(f"{prof:10s} {st:5s} seed {seed:2d}: within 3σ {100 * r.coverage:5.1f} %, worst "
                       f"{np.abs(r.z).max():5.2f}σ ({NAMES[int(np.argmax(np.abs(r.z)))]}), NEES {r.nees:6.1f}/"
                       f"{r.nees_dof}, determined {int(r.determined.sum())}, gyro bias @60 s "
-                      f"{r.gyro_bias_err_60s:.1e}, events {r.events or '-'}, ×{r.realtime:.0f}", flush=True)
+                      f"{r.gyro_bias_err_60s:.1e}, events {r.events or '-'}, health {r.verdict}, accel NIS "
+                      f"{r.accel_nis:.2f}/{r.accel_vehicle_nis:.2f}, ×{r.realtime:.0f}", flush=True)
+                if args.save:
+                    _save(args.save, runs)
     print()
     for line in summary(runs):
         print(line)
-    if args.save:
-        import json
 
-        with open(args.save, "w") as fh:
-            json.dump([{"profile": r.profile, "start": r.start, "seed": r.seed, "z": r.z.tolist(),
-                        "determined": r.determined.tolist(), "held": r.held.tolist(),
-                        "gyro_bias_err_60s": r.gyro_bias_err_60s, "events": r.events,
-                        "realtime": r.realtime} for r in runs], fh)
+
+def _save(path: str, runs: list[FlightRun]) -> None:
+    import json
+
+    with open(path, "w") as fh:
+        json.dump([{"profile": r.profile, "start": r.start, "seed": r.seed, "z": r.z.tolist(),
+                    "determined": r.determined.tolist(), "held": r.held.tolist(),
+                    "gyro_bias_err_60s": r.gyro_bias_err_60s, "events": r.events, "realtime": r.realtime,
+                    "verdict": r.verdict, "reasons": list(r.reasons), "nis_out": r.nis_out,
+                    "accel_nis": r.accel_nis, "accel_vehicle_nis": r.accel_vehicle_nis} for r in runs], fh)
 
 
 if __name__ == "__main__":

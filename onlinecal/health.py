@@ -12,8 +12,21 @@ A result is judged on what can be checked without the truth:
   sensor against its expectation, the measurement dimension d = 3 (a chi-square mean). Outside
   [d/2, 2d] → **degraded** (the noise model does not describe the data: the σ are not to be trusted), above
   10 d → **failed** (the estimate does not describe the data at all).
+  On a vehicle, the accelerometer updates whose R carries the modelled vehicle acceleration (σ_v² τ_v/Δt,
+  :mod:`onlinecal.ukf.vehicle`) are summarised apart (the sensor's ``"vehicle"`` figures,
+  :mod:`onlinecal.ukf.health`): their NIS is below d by design whenever the vehicle accelerates less than
+  the bound, so only a mean *above* 2 d (the bound did not cover the flight) → **degraded**, above 10 d →
+  **failed**; the two-sided band judges the updates whose R is the sensor's noise (rests, the ground).
+* **gravity at rest** (:func:`gravity_checks`), when the raw samples are given: where the calibrated
+  gyro and accelerometer are still (blocks of :data:`REST_BLOCK` samples), the calibrated specific force is
+  gravity, so its norm must be g within what the accelerometer's σ along it allow (5σ) plus the spread of
+  local gravity on Earth (:data:`G_LOCAL_TOL`). Beyond → **degraded**. The filter cannot always show this
+  in its NIS: its quasi-static weighting reads a norm away from g as a linear acceleration and lowers the
+  accelerometer's weight (a bench file 0.3 m/s² off along z, σ 1e-3, replayed on a flight: 9 of 20 runs'
+  accel NIS stayed in band).
 * **divergences** and **saturation** events of the filter → **degraded**, each counted in words.
-* **coverage** of the magnetometer data (:func:`mag_coverage`), when the raw samples are given: the
+* **coverage** of the magnetometer data (:func:`mag_coverage`), when the raw samples are given and the
+  magnetometer's bias or scale were fitted on them (:func:`_mag_fitted_here`): the
   share of 32 equal direction cells on the calibrated unit sphere that hold samples. Below 40 % → the
   ellipsoid fit (eq. 17) extrapolates and its bias and scale can be far further off than their σ →
   **degraded**.
@@ -54,6 +67,16 @@ RAIL_MIN = {"gyro": 1.0, "accel": 19.6}  # rad/s, m/s²: no rail is below (250 �
 RAIL_SAMPLES = 10  # samples at an axis' largest magnitude that make it a rail, not a peak
 UNDETERMINED_RATIO = 0.5  # posterior σ / prior σ above this: the data did not determine the term
 COVERAGE_MIN = 0.4
+# gravity at rest: blocks of REST_BLOCK samples whose calibrated gyro is below REST_RATE rad/s (mean and
+# per-axis σ) and whose calibrated accel per-axis σ is below REST_ACC m/s² (the spec noise of a MEMS part
+# is 0.01–0.03 m/s² per sample up to 1 kHz; any running motor is ≥ 0.3); at least REST_MIN_BLOCKS of them
+REST_BLOCK = 50
+REST_RATE = 0.01
+REST_ACC = 0.05
+REST_MIN_BLOCKS = 10
+# local gravity on the Earth's surface spans 9.764 (high mountains, equator) – 9.834 m/s² (poles): within
+# 0.05 m/s² of the standard value the norm check cannot tell a calibration error from the place
+G_LOCAL_TOL = 0.05
 COVERAGE_CELLS = 32
 COVERAGE_MIN_SAMPLES = 3  # per cell
 
@@ -132,7 +155,33 @@ def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[
             out.append(("degraded", f"{s}: mean NIS {m:.3g} outside [{lo:g}, {hi:g}] ({NIS_DOF} expected): {how}; "
                                     "its σ are not to be trusted"))
         figs[s] = {"mean": m, "windows": w, "expected": NIS_DOF, "band": [lo, hi], "status": status}
+    for s, st in nis.items():
+        veh = st.get("vehicle") if isinstance(st, dict) else None
+        if isinstance(veh, dict):
+            vf, figs[s + "_vehicle"] = _vehicle_nis_check(s, veh)
+            out += vf
     return out, figs
+
+
+def _vehicle_nis_check(sensor: str, st: dict[str, Any]) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+    """One-sided judgement of the vehicle-disturbed updates' mean NIS (see the module doc): the disturbance
+    is a bound, so a mean below d is expected; above 2 d the bound did not cover the vehicle's motion."""
+    raw_m, w = st.get("mean"), int(st.get("windows") or 0)
+    m = float(raw_m) if isinstance(raw_m, (int, float)) else math.nan
+    hi = NIS_OK[1] * NIS_DOF
+    fig: dict[str, Any] = {"mean": m if math.isfinite(m) else None, "windows": w, "expected": f"≤ {NIS_DOF}",
+                           "band": [0.0, hi]}
+    if not math.isfinite(m) or (w < NIS_MIN_WINDOWS and not (w >= 1 and m > NIS_FAILED * NIS_DOF)):
+        return [], dict(fig, status="too few updates")
+    if m > NIS_FAILED * NIS_DOF:
+        return [("failed", f"{sensor} in flight: mean NIS {m:.4g} with the vehicle acceleration modelled "
+                           f"({NIS_DOF} at most expected): the calibration does not describe the data")], \
+            dict(fig, status="failed")
+    if m > hi:
+        return [("degraded", f"{sensor} in flight: mean NIS {m:.3g} above {hi:g} with the vehicle acceleration "
+                             "modelled: the vehicle accelerated beyond the modelled bound or the calibration is "
+                             "off; its σ are not to be trusted")], dict(fig, status="degraded")
+    return [], dict(fig, status="ok")
 
 
 def _gate_check(sensor: str, st: dict[str, Any]) -> tuple[str, str] | None:
@@ -211,6 +260,69 @@ def mag_coverage(mag_cal: Any, cells: int = COVERAGE_CELLS) -> float:
     return float(np.mean(counts >= COVERAGE_MIN_SAMPLES))
 
 
+def gravity_checks(cal: Calibration, raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+    """At rest the calibrated specific force is gravity: (verdict, reason) when the median of |f| − g over
+    the still blocks of ``raw`` (sensor → raw samples (N, 3), gyro and accel on one time base) is beyond
+    5σ of what the accelerometer's σ allow along f, plus :data:`G_LOCAL_TOL`; and the figures. Nothing is
+    judged without both sensors' calibration or with fewer than :data:`REST_MIN_BLOCKS` still blocks."""
+    from .specs import G0
+
+    fig: dict[str, Any] = {"rest_blocks": 0}
+    if not raw or cal.accel is None or cal.gyro is None:
+        return [], fig
+    w, a = raw.get("gyro"), raw.get("accel")
+    if w is None or a is None:
+        return [], fig
+    w, a = np.asarray(w, float).reshape(-1, 3), np.asarray(a, float).reshape(-1, 3)
+    n = min(w.shape[0], a.shape[0]) // REST_BLOCK * REST_BLOCK
+    if n < REST_BLOCK * REST_MIN_BLOCKS:
+        return [], fig
+    with np.errstate(all="ignore"):
+        wc = cal.gyro.apply(w[:n]).reshape(-1, REST_BLOCK, 3)
+        fc = cal.accel.apply(a[:n]).reshape(-1, REST_BLOCK, 3)
+        still = ((np.abs(wc.mean(1)) < REST_RATE).all(1) & (wc.std(1) < REST_RATE).all(1)
+                 & (fc.std(1) < REST_ACC).all(1))
+    still &= np.isfinite(fc).all((1, 2)) & np.isfinite(wc).all((1, 2))
+    k = int(still.sum())
+    fig["rest_blocks"] = k
+    if k < REST_MIN_BLOCKS:
+        return [], fig
+    f = fc[still].mean(1)  # (k, 3) m/s²
+    dev = float(np.median(np.linalg.norm(f, axis=1) - G0))
+    u = np.median(f / np.linalg.norm(f, axis=1, keepdims=True), axis=0)
+    sig = cal.accel.sigma or {}
+    sb = np.asarray(sig.get("bias", np.zeros(3)), float).reshape(3)
+    ss = np.asarray(sig.get("scale", np.zeros(3)), float).reshape(3)
+    sb, ss = np.where(np.isfinite(sb), sb, np.inf), np.where(np.isfinite(ss), ss, np.inf)
+    # f_i = s_i (raw_i − o_i) along each axis (eqs. 1–2, small angles): δf_i = (f_i/s_i) δs_i − s_i δo_i,
+    # independent; |f| moves by Σ u_i δf_i
+    sc = np.abs(np.asarray(cal.accel.scale, float))
+    s_f = float(np.sqrt(np.sum(u**2 * ((sc * sb) ** 2 + (G0 / sc * ss) ** 2))))
+    tol = 5.0 * s_f + G_LOCAL_TOL
+    fig.update({"norm_minus_g": dev, "sigma": s_f, "tolerance": tol})
+    if abs(dev) > tol:
+        return [("degraded", f"accel: at rest ({k} still blocks) the calibrated specific force is {dev:+.3g} m/s² "
+                             f"from g (allowed {tol:.2g}: 5σ of the calibration along gravity + local gravity): "
+                             "its bias or scale along gravity is off, and its σ are not to be trusted")], fig
+    return [], fig
+
+
+def _mag_fitted_here(cal: Calibration, observability: dict[str, Any] | None) -> bool:
+    """Whether the magnetometer's bias or scale come from these samples, so that their coverage judges
+    them: always for a batch result (no observability); for an online one only where the filter used the
+    magnetometer and the data determined some mag bias or scale term (posterior σ < ½ prior σ). A cold
+    flight whose mag was never calibrated keeps its prior (listed as undetermined), and a flight started
+    from a bench file keeps the bench's mag: the flight's coverage says nothing about either (10-min
+    multirotor and fixed-wing flights sweep 22–28 % of the directions)."""
+    if not observability:
+        return True
+    online = cal.meta.get("online", {}) if isinstance(cal.meta, dict) else {}
+    if isinstance(online, dict) and online.get("mag_used") is False:
+        return False
+    return any(isinstance(v, dict) and isinstance(v.get("ratio"), (int, float)) and v["ratio"] <= UNDETERMINED_RATIO
+               for k, v in observability.items() if k.startswith(("mag.bias.", "mag.scale.")))
+
+
 def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -> list[str]:
     """Terms the data did not determine: posterior σ / prior σ > ½ (the filter's observability), or, with
     no observability, a term without σ of a sensor that has σ for others (the batch left it at its start
@@ -258,12 +370,14 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
     ef, ev = event_checks(events)
     found += ef
     checks.update(ev)
+    gf, checks["gravity_at_rest"] = gravity_checks(cal, raw)
+    found += gf
     rf, rails = rail_checks(raw)
     if not ev.get("saturation"):  # the filter's own saturation event already says it
         found += rf
     checks["rail_samples"] = rails
     notes: list[str] = []
-    if mag_raw is not None and cal.mag is not None:
+    if mag_raw is not None and cal.mag is not None and _mag_fitted_here(cal, observability):
         try:
             cov = mag_coverage(cal.mag.apply(np.asarray(mag_raw, float).reshape(-1, 3)))
         except (ValueError, TypeError):

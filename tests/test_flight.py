@@ -109,11 +109,9 @@ def test_observability_report_in_json_and_words(tmp_path):
     out = tmp_path / "cal.json"
     r = subprocess.run([sys.executable, "-m", "onlinecal", "replay", str(log), "--init", "none", "--json", str(out)],
                        capture_output=True, text=True, cwd=ROOT)
-    # 4 (degraded) is the health verdict's honest word on a flight: the vehicle-acceleration model overstates
-    # the accelerometer's noise (mean NIS below its band, σ conservative); anything else is a failure
-    assert r.returncode in (0, 4), r.stderr
-    if r.returncode == 4:
-        assert "accel: mean NIS" in r.stderr and "failed" not in r.stderr, r.stderr
+    # a clean flight is healthy: the accel NIS band judges the rests (R = the sensor noise), the updates
+    # carrying the vehicle-acceleration disturbance are judged one-sided (tests/test_flight_health.py)
+    assert r.returncode == 0, r.stderr
     rep = json.loads(out.read_text())["meta"]["online"]["observability"]
     assert {"gyro.bias.x", "gyro.bias.y", "gyro.bias.z"} <= set(rep["determined"])
     und = {u["term"]: u for u in rep["undetermined"]}

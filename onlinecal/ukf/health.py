@@ -5,6 +5,20 @@ A window of ``nis_window`` updates has a mean NIS whose band, for a consistent f
 χ²(W·3)/W at the two-sided probability ``nis_band_p``; ``divergence_windows`` windows in a row above
 ``divergence_factor`` × its upper end are a divergence (:meth:`NisMonitor.record` says so; the filter
 re-initialises).
+
+**Vehicle-disturbed updates apart.** On a vehicle the filter adds the unknown vehicle acceleration to the
+accelerometer's R outside a rest (:func:`.vehicle.vehicle_accel_var`: σ_v²·k, k = max(1, τ_v/Δt): one
+σ_v-measurement per correlation time, spread over the k blocks it covers). Such an update's NIS is ≈ d/k
+times (actual acceleration / σ_v)²: about 0.003 on a clean multirotor flight (k = 300), and mixed with the
+rest updates it dragged a clean flight's accel mean NIS to 0.7–0.9, below the band — the design, not an
+overstated sensor noise, and it hid the sensor's own consistency. So an accel update whose R carries the
+disturbance (``inflated`` = k, set by the filter for that update) goes to the sensor's ``vehicle``
+sub-stream as NIS·k, which judges the innovation against σ_v² itself: ≤ d while the vehicle stays within
+the modelled bound, whatever the block length. That stream is judged one-sided over the whole run
+(:func:`onlinecal.health.nis_checks`: only *above* 2d is a fault, the bound did not cover the flight) and
+takes no part in the divergence test (the disturbance is correlated over τ_v, a 10-s window is one draw of
+it). The sensor's main stream keeps the updates whose R is the sensor's noise (rests, the ground, a
+platform), judged two-sided and for divergence as before.
 """
 
 from __future__ import annotations
@@ -22,6 +36,30 @@ def new_nis_stats() -> dict[str, Any]:
     return {"sum": 0.0, "n": 0, "windows": [], "bad_run": 0, "rejected": 0, "updates": 0}
 
 
+def _add(st: dict[str, Any], nis: float, t: float, window: int) -> float | None:
+    """Add one NIS at log time t s to the stream ``st``; the window's mean when ``window`` updates
+    completed it (the last 1000 window means are kept), else None."""
+    st["sum"] += min(nis, 1e6)
+    st["n"] += 1
+    st["updates"] += 1
+    if st["n"] < window:
+        return None
+    mean = float(st["sum"] / st["n"])
+    st["sum"], st["n"] = 0.0, 0
+    st["windows"].append([t, mean])
+    if len(st["windows"]) > 1000:
+        st["windows"] = st["windows"][-1000:]
+    return mean
+
+
+def _window_summary(st: dict[str, Any], lo: float, hi: float) -> dict[str, Any]:
+    """Updates, rejected, windows, mean of the window means and the share inside [lo, hi] of one stream."""
+    ws = np.array([w[1] for w in st["windows"]]) if st["windows"] else np.zeros(0)
+    return {"updates": st["updates"], "rejected": st["rejected"], "windows": int(ws.size),
+            "mean": float(ws.mean()) if ws.size else float("nan"),
+            "in_band": float(np.mean((ws >= lo) & (ws <= hi))) if ws.size else float("nan")}
+
+
 @dataclass
 class NisMonitor:
     """Windowed mean NIS per sensor (``accel``, ``mag``) against its chi-square band: ``window`` updates
@@ -33,6 +71,17 @@ class NisMonitor:
     factor: float
     windows: int
     stats: dict[str, dict[str, Any]] = field(default_factory=lambda: {s: new_nis_stats() for s in ("accel", "mag")})
+    # set by the filter around an update whose accel R carries the vehicle disturbance: its accel NIS goes
+    # to stats["accel"]["vehicle"] (see the module doc); transient, not part of the checkpoint
+    inflated: float = 0.0
+
+    def _stream(self, sensor: str) -> dict[str, Any]:
+        """The bookkeeping an accel/mag update of ``sensor`` goes to now (the vehicle sub-stream for a
+        disturbed accel update)."""
+        st = self.stats[sensor]
+        if self.inflated > 0 and sensor == "accel":
+            return st.setdefault("vehicle", new_nis_stats())  # a checkpoint from before has none
+        return st
 
     def band(self, dof: int = 3) -> tuple[float, float]:
         """Band (lo, hi) of a window's mean NIS (``dof`` per update)."""
@@ -42,23 +91,24 @@ class NisMonitor:
 
     def reject(self, sensor: str) -> None:
         """Count an update of ``sensor`` gated out (dropped or R inflated)."""
-        self.stats[sensor]["rejected"] += 1
+        self._stream(sensor)["rejected"] += 1
 
     def record(self, sensor: str, nis: float, t: float) -> str | None:
         """Add one NIS of ``sensor`` at log time t s; returns why it diverged, or None."""
-        st = self.stats[sensor]
-        st["sum"] += min(nis, 1e6)
-        st["n"] += 1
-        st["updates"] += 1
-        st["last"] = nis
-        if st["n"] < self.window:
+        self.stats[sensor]["last"] = nis  # the trace's nis.<sensor>: whichever stream
+        st = self._stream(sensor)
+        if st is not self.stats[sensor]:
+            # vehicle-disturbed: R carries σ_v²·k (k = max(1, τ_v/Δt), one σ_v-measurement per correlation
+            # time spread over k blocks); ν's disturbance part has the vehicle's own per-block variance, so
+            # NIS·k judges it against σ_v² itself (≤ d while the vehicle stays within the bound). Kept out
+            # of the divergence test: a correlated disturbance makes 10-s windows one draw each, and the
+            # health verdict judges this stream over the whole run (onlinecal.health)
+            _add(st, nis * self.inflated, t, self.window)
             return None
-        mean = st["sum"] / st["n"]
-        st["sum"], st["n"] = 0.0, 0
+        mean = _add(st, nis, t, self.window)
+        if mean is None:
+            return None
         lo, hi = self.band()
-        st["windows"].append([t, mean])
-        if len(st["windows"]) > 1000:
-            st["windows"] = st["windows"][-1000:]
         if mean > self.factor * hi:
             st["bad_run"] += 1
         else:
@@ -71,21 +121,22 @@ class NisMonitor:
     def restart(self, sensor: str) -> None:
         """The running window of ``sensor`` restarts (its model was re-initialised)."""
         self.stats[sensor].update({"sum": 0.0, "n": 0, "bad_run": 0})
+        if "vehicle" in self.stats[sensor]:
+            self.stats[sensor]["vehicle"].update({"sum": 0.0, "n": 0, "bad_run": 0})
 
     def last(self, sensor: str) -> float:
         return float(self.stats[sensor].get("last", float("nan")))
 
     def summary(self, events_total: int) -> dict[str, Any]:
-        """Per sensor: updates, rejected by the gate, windows, share of window means inside the band."""
+        """Per sensor: updates, rejected by the gate, windows, share of window means inside the band — of
+        the updates whose R is the sensor's noise; the vehicle-disturbed accel updates, where there were
+        any, under the sensor's ``"vehicle"`` key with the same figures."""
         lo, hi = self.band()
         out: dict[str, Any] = {"band": [lo, hi]}
         for s, st in self.stats.items():
-            ws = np.array([w[1] for w in st["windows"]]) if st["windows"] else np.zeros(0)
-            out[s] = {
-                "updates": st["updates"], "rejected": st["rejected"], "windows": int(ws.size),
-                "mean": float(ws.mean()) if ws.size else float("nan"),
-                "in_band": float(np.mean((ws >= lo) & (ws <= hi))) if ws.size else float("nan"),
-            }
+            out[s] = _window_summary(st, lo, hi)
+            if st.get("vehicle", {}).get("updates"):
+                out[s]["vehicle"] = _window_summary(st["vehicle"], lo, hi)
         out["events_total"] = events_total
         return out
 

@@ -153,7 +153,10 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
         return
     # not at rest (rests go to rest_step): an accel outlier is motion the model lacks, dropped
     k = cal._div.count
+    # a vehicle-disturbed accel NIS is judged apart, against σ_v² (.health.NisMonitor)
+    cal._nis.inflated = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
     res = gated_update(cal, Y, x_pred, P_pred, meas, False, tl, damp=cal.config.update_damping)
+    cal._nis.inflated = 0.0
     if cal._div.count == k:  # else the update declared a divergence: the restarted state stands
         commit(cal, res.x, res.P, tl)
 

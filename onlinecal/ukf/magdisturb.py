@@ -118,16 +118,20 @@ class MagDisturbanceGate:
         a disagreement counts as a disturbance (while the filter re-learns the terms, it is no change)."""
         self.active, self.armed, self.agreed_since = False, False, math.nan
 
-    def judge(self, x: Array, sig: Array, m_raw: Array, a_raw: Array, gravity: float) -> str | None:
+    def judge(self, x: Array, sig: Array, m_raw: Array, a_raw: Array, gravity: float,
+              accel_is_gravity: bool = True) -> str | None:
         """Why the block's field disagrees with the model, or None. m_raw (N, 3), a_raw (K, 3) raw samples
-        of the block; x, sig (n,) the state and its σ; ``gravity`` m/s²."""
+        of the block; x, sig (n,) the state and its σ; ``gravity`` m/s². ``accel_is_gravity`` False (a
+        vehicle in motion, :mod:`.vehicle`): the dip is not judged, since a specific force of norm g can
+        still be thrust and acceleration tilted away from gravity (a multirotor accelerating at 2 m/s²
+        passes the 2 % norm test with its force 11° off the vertical)."""
         h = calibrated(x, "mag", m_raw.mean(axis=0))
         dev = float(np.linalg.norm(h)) - 1.0
         tol = max(NORM_MIN, NORM_K * norm_sigma(x, sig, h))
         if abs(dev) > tol:
             return f"field norm {1 + dev:.2f} of the model's 1 (tolerance ±{tol:.2f})"
         f = calibrated(x, "accel", a_raw.mean(axis=0))
-        if abs(float(np.linalg.norm(f)) / gravity - 1.0) < STATIC_G:
+        if accel_is_gravity and abs(float(np.linalg.norm(f)) / gravity - 1.0) < STATIC_G:
             d = math.degrees(dip_of(h, f) - float(x[DIP]))
             tol_d = max(DIP_MIN_DEG, DIP_K * math.degrees(float(sig[DIP])))
             if abs(d) > tol_d:
@@ -135,7 +139,8 @@ class MagDisturbanceGate:
         return None
 
     def gate(self, use_mag: bool, x: Array, sig: Array, m_raw: Array, a_raw: Array, t: float, gravity: float,
-             event: Callable[[str, str, float], None], in_order: bool = True) -> bool:
+             event: Callable[[str, str, float], None], in_order: bool = True,
+             accel_is_gravity: bool = True) -> bool:
         """``use_mag`` unless the block lies in a disturbance; the events through ``event(kind, detail, t)``
         at log time t s. Nothing is judged while the magnetometer is not used (cold, or no sample).
         ``in_order`` (:func:`nis_in_order`): False disarms the gate (and ends a running stretch: the filter's
@@ -149,7 +154,7 @@ class MagDisturbanceGate:
             return use_mag
         if not use_mag or m_raw.shape[0] == 0:
             return use_mag and not self.active
-        why = self.judge(x, sig, m_raw, a_raw, gravity)
+        why = self.judge(x, sig, m_raw, a_raw, gravity, accel_is_gravity)
         if why is None:
             if math.isnan(self.agreed_since):
                 self.agreed_since = t

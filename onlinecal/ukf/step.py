@@ -49,7 +49,8 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     tl = float(t[-1])
     use_mag, mag_changed = mag_block(cal, tm_all[ml:mh], m_all[ml:mh], tl)
     use_mag = cal._magd.gate(use_mag, cal.x, cal.sigma(), m_all[ml:mh], a, tl, c.gravity, cal._event,
-                             nis_in_order(cal._nis.stats, cal._nis.band()[1]))  # a magnetic disturbance
+                             nis_in_order(cal._nis.stats, cal._nis.band()[1]),  # a magnetic disturbance
+                             accel_is_gravity=not cal._vehicle.active)
     spec = cal._spec_noise()
     q = cal._lat.q or {}
     for kind, detail in cal._noise.monitor_all({s: float(B.var3[s][b]) for s in SENSORS}, spec, q,

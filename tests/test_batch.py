@@ -15,6 +15,7 @@ from onlinecal.sim import simulate
 from onlinecal.sim.motion import G0
 
 
+@pytest.mark.slow
 def test_accuracy_on_paper_sessions(paper_sessions):
     for sim, res in paper_sessions:
         c, t = res.calibration, sim.truth.calibration

@@ -22,6 +22,7 @@ def session(tmp_path_factory):
     return d, log
 
 
+@pytest.mark.slow
 def test_simulate_then_batch_through_tlog(session):
     d, log = session
     truth = json.loads((d / "s.tlog.truth.json").read_text())
@@ -73,6 +74,7 @@ def test_bad_csv_one_line_exit_2(tmp_path, content, needle):
     assert str(p) in line and needle.lower() in line.lower()
 
 
+@pytest.mark.slow
 def test_garbage_tlog_and_missing_file(tmp_path):
     p = tmp_path / "junk.tlog"
     p.write_bytes(np.random.default_rng(0).bytes(5000))

@@ -69,6 +69,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     (["simulate", "--out", "/nonexistent/dir/x.tlog"], "/nonexistent/dir/x.tlog"),
     (["export", "{cal}", "--format", "px4", "--out", "/nonexistent/x.params"], "/nonexistent/x.params"),
 ])
+@pytest.mark.slow
 def test_unwritable_output_refused_quickly(session: dict[str, Path], args: list[str], path: str) -> None:
     args = [a.format(log=session["log"], cal=session["cal"]) for a in args]
     t0 = time.monotonic()
@@ -111,6 +112,7 @@ JUNK = {"list": "[1, 2]", "string": '"x"', "null": "null", "nested": '{"schema":
         "huge-bias": '{"schema": "onlinecal.calibration/1", "gyro": {"bias": [1e300,0,0]}}'}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(JUNK))
 @pytest.mark.parametrize("cmd", ["export", "compare", "replay", "replay-jobs", "run"])
 def test_damaged_calibration_one_line_naming_the_file(session: dict[str, Path], tmp_path: Path, kind: str,
@@ -130,6 +132,7 @@ def test_directory_as_calibration(tmp_path: Path) -> None:
     assert str(tmp_path) in one_line(cli("export", str(tmp_path), "--format", "px4"))
 
 
+@pytest.mark.slow
 def test_unicode_file_name_under_lang_c(session: dict[str, Path], tmp_path: Path) -> None:
     u = tmp_path / "kalibrierung-σ-µ.json"
     u.write_bytes(session["cal"].read_bytes())
@@ -141,6 +144,7 @@ def test_unicode_file_name_under_lang_c(session: dict[str, Path], tmp_path: Path
 
 # -- output ------------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_batch_json_dash_is_stdout_strict_json_with_health(session: dict[str, Path]) -> None:
     r = cli("batch", str(session["log"]), "--json", "-", "--quiet")
     assert r.returncode == 0, r.stderr
@@ -150,6 +154,7 @@ def test_batch_json_dash_is_stdout_strict_json_with_health(session: dict[str, Pa
     assert "health of the batch calibration: ok" in r.stderr and "batch pipeline:" in r.stderr
 
 
+@pytest.mark.slow
 def test_batch_table_has_units_sigma_and_no_empty_columns(session: dict[str, Path]) -> None:
     r = cli("batch", str(session["log"]), "-q")
     head = r.stdout.splitlines()[0].split()
@@ -158,6 +163,7 @@ def test_batch_table_has_units_sigma_and_no_empty_columns(session: dict[str, Pat
     assert "m/s^2" in row and "—" not in row
 
 
+@pytest.mark.slow
 def test_compare_accepts_truth_and_tol_sets_the_exit_status(session: dict[str, Path]) -> None:
     ok = cli("compare", str(session["truth"]), str(session["cal"]), "--tol", "1e6")
     assert ok.returncode == 0, ok.stderr
@@ -171,6 +177,7 @@ def test_compare_accepts_truth_and_tol_sets_the_exit_status(session: dict[str, P
 
 @pytest.mark.parametrize("cmd", [["export", "{cal}", "--format", "px4", "--out", "-"],
                                  ["compare", "{cal}", "{cal}"], ["batch", "{log}"]])
+@pytest.mark.slow
 def test_quiet_after_every_command(session: dict[str, Path], cmd: list[str]) -> None:
     args = [a.format(d=session["dir"], cal=session["cal"], log=session["log"]) for a in cmd]
     r = cli(*args, "--quiet")
@@ -186,6 +193,7 @@ def test_quiet_is_accepted_after_every_subcommand() -> None:
         assert any("--quiet" in a.option_strings for a in p._actions), name
 
 
+@pytest.mark.slow
 def test_help_documents_exit_status_csv_schema_and_examples() -> None:
     r = cli("--help")
     text = " ".join(r.stdout.split())
@@ -208,6 +216,7 @@ def test_library_warnings_become_one_line_warnings(tmp_path: Path) -> None:
     assert "divide by zero" in lines[0] and "a style warning" in lines[1] and "line " not in r.stderr
 
 
+@pytest.mark.slow
 def test_export_guard_on_the_command_line(session: dict[str, Path], tmp_path: Path) -> None:
     d = json.loads(session["cal"].read_text())
     d["accel"]["sigma"]["bias"] = [0.001, 0.001, 0.37]
@@ -251,6 +260,7 @@ def test_fifo_log_refused_at_once(tmp_path: Path) -> None:
 MARG = REPO.parent / "shared" / "data" / "marg-set1"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (MARG / "tilt-sphere.csv").is_file(), reason="measured data ../shared/data absent")
 def test_issue_row_replay_tilt_sphere_is_not_trusted(tmp_path: Path) -> None:
     """`replay marg-set1/tilt-sphere.csv` printed gyro.scale.y 0.602 with no warning and exit 0, its JSON
@@ -276,6 +286,7 @@ def test_diagnose_prints_estimated_parameters_and_gain() -> None:
 
 @pytest.mark.parametrize("args", [["replay", "x.tlog", "--trace", "-"], ["replay", "x.tlog", "--report", "-"],
                                   ["demo", "--out", "-"]])
+@pytest.mark.slow
 def test_dash_where_a_file_is_needed(tmp_path: Path, args: list[str]) -> None:
     line = one_line(cli(*args, cwd=tmp_path))
     assert "-" in line and not (tmp_path / "-").exists()
@@ -283,6 +294,7 @@ def test_dash_where_a_file_is_needed(tmp_path: Path, args: list[str]) -> None:
 
 @pytest.mark.parametrize("content", ["[1, 2]", "null", '{"schema": "onlinecal.live-checkpoint/1", "state": null}',
                                      '{"schema": "onlinecal.live-checkpoint/1"', "\x00\x01"])
+@pytest.mark.slow
 def test_run_resume_from_a_damaged_checkpoint(tmp_path: Path, content: str) -> None:
     ck = tmp_path / "run.ckpt"
     ck.write_text(content)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import inspect
 
 import numpy as np
+import pytest
 import threadpoolctl
 
 from onlinecal.diagnose import diagnose
@@ -63,6 +64,7 @@ def test_solve_on_one_thread_equals_threaded_solve_to_1e10(monkeypatch) -> None:
     np.testing.assert_allclose(b_one, b_ref, rtol=1e-8, atol=1e-8 * np.abs(b_ref).max())
 
 
+@pytest.mark.slow
 def test_diagnose_findings_equal_with_and_without_the_thread_limit(monkeypatch) -> None:
     """A short session with a drift candidate: findings, gains, thresholds and parameters equal (1e-8
     relative; quantities that are zero up to rounding compared absolutely)."""

@@ -101,6 +101,7 @@ def test_written_parameters_take_the_interference_out(fmt: str, tmp_path: Path) 
     assert err < 2e-6 * before  # float32 parameters
 
 
+@pytest.mark.slow
 def test_coefficient_within_its_noise_is_withheld(tmp_path: Path) -> None:
     cal = _cal({"coeff": [1e-5, -2e-5, 1e-5], "basis": "current", "coeff_sigma": [1e-5] * 3})
     r, P = _export_cli(cal, "ardupilot", tmp_path)

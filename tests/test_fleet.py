@@ -182,6 +182,7 @@ def test_dask_missing_is_exit_3_with_the_install_hint(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_fleet_options_that_belong_to_one_replay_are_refused(tmp_path):
     r = cli("replay", "a.tlog", "--jobs", "2", "--report", str(tmp_path / "r"))
     assert r.returncode == 2 and "--report" in r.stderr

@@ -72,6 +72,7 @@ def test_motion_coverage_counts_turns_rests_and_field():
 
 # -- the filter in flight ------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_paper_session_is_not_a_vehicle():
     """The platform turns about a fixed point: no vibration, |f| = g. The detector stays off, so the
     accelerometer keeps its full weight in motion (the paper session's figures are unchanged)."""
@@ -136,6 +137,7 @@ def test_checkpoint_keeps_vehicle_and_coverage():
     assert back._coverage.to_dict() == cal._coverage.to_dict()
 
 
+@pytest.mark.slow
 def test_flight_cold_start_is_consistent_one_seed():
     """Fast tier: 3 min of multirotor flight at 100 Hz, cold: no term beyond 4σ, no divergence, gyro bias
     within 1e-3 rad/s (the disarmed ground rest), gyro x/y scale not claimed (σ above half its prior)."""

@@ -119,6 +119,7 @@ def _sim(tmp_path: Path, seed: int) -> Path:
     return log
 
 
+@pytest.mark.slow
 def test_clean_flight_is_ok_and_a_wrong_bench_calibration_is_not(tmp_path):
     """150 s of multirotor flight. Cold (--init none): health ok, exit 0. Replayed from a bench calibration
     of the same unit whose accelerometer z bias is 0.3 m/s² off (a unit re-mounted or recalibrated since;

@@ -277,6 +277,7 @@ def test_tlog_swapped_chunk_loses_only_the_moved_packets(bases, tmp_path):
 
 # --- the command line ---------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_cli_batch_on_damaged_files_exits_2_with_one_line(bases, tmp_path):
     raw_bin = bytearray(bases["bin"])
     raw_bin[89 + 9] = ord("\\")  # the IMU FMT's first format character: one pymavlink does not know

@@ -67,6 +67,7 @@ def assert_values(out: ImuData, data: ImuData, i: np.ndarray) -> None:
     assert np.all(np.abs(out.temp - data.temp[i]) <= 0.005 + 1e-9)
 
 
+@pytest.mark.slow
 def test_clean_stream_equals_sent_and_rate_request_acknowledged(session: ImuData) -> None:
     port = free_port()
     src = LiveSource(f"udpin:127.0.0.1:{port}", rate_hz=100, reconnect_s=2.0, timeout_s=0.7)
@@ -96,6 +97,7 @@ def test_clean_stream_equals_sent_and_rate_request_acknowledged(session: ImuData
         assert src.stats[k] == 0, k
 
 
+@pytest.mark.slow
 def test_lossy_link_drop_reorder_duplicate(session: ImuData) -> None:
     port = free_port()
     src = LiveSource(f"udpin:127.0.0.1:{port}", reconnect_s=2.0, timeout_s=0.7)
@@ -164,6 +166,7 @@ def test_resume_from_position_continues_the_time_line(session: ImuData) -> None:
         bad.resume_from({"last_us": 1})
 
 
+@pytest.mark.slow
 def test_udp_reconnect_after_silence(session: ImuData) -> None:
     port = free_port()
     url = f"udpout:127.0.0.1:{port}"
@@ -194,6 +197,7 @@ def test_udp_reconnect_after_silence(session: ImuData) -> None:
     assert any("re-opened" in w for w in out.warnings)
 
 
+@pytest.mark.slow
 def test_tcp_reconnect_after_server_restart(session: ImuData) -> None:
     port = free_port(socket.SOCK_STREAM)
     url = f"tcpin:127.0.0.1:{port}"

@@ -52,6 +52,7 @@ def run_sender(fn: Callable[[threading.Event], Any]) -> Sender:
     return Sender(fn)
 
 
+@pytest.mark.slow
 def test_run_live_ends_by_its_idle_timeout_with_a_result():
     """`run` with data that stops: the run ends within idle timeout + 1 s of the last packet, with a result
     (before: `run --duration` waited for ever)."""
@@ -113,6 +114,7 @@ def _junk_run(port: int, junk_per_packet: int, n: int = 3000) -> dict[str, Any]:
     return {"imu": n_imu(blocks), **src.stats}
 
 
+@pytest.mark.slow
 def test_junk_datagrams_do_not_crowd_out_valid_packets():
     """4000 junk datagrams interleaved with the stream lose no valid packet that a clean run keeps (before:
     4000 junk datagrams cost 2274 valid RAW_IMU packets, 8 %)."""
@@ -124,6 +126,7 @@ def test_junk_datagrams_do_not_crowd_out_valid_packets():
     assert dirty["imu"] == clean["imu"]
 
 
+@pytest.mark.slow
 def test_two_vehicles_the_first_heartbeat_is_read_and_the_other_named_or_pick_one():
     port = free_port()
 
@@ -152,6 +155,7 @@ def test_two_vehicles_the_first_heartbeat_is_read_and_the_other_named_or_pick_on
         assert any(f"system {other} component 1" in w and "--sysid" in w for w in src.warnings)
 
 
+@pytest.mark.slow
 def test_highres_imu_is_read_in_si_units():
     """PX4 streams HIGHRES_IMU (SI units) and no RAW_IMU."""
     port = free_port()

@@ -207,6 +207,7 @@ def _closure(data_dir, res, names):
     return {n: gc.closure(gc.read_csv(str(data_dir / "marg-set1" / n)), cj)[0] for n in names}
 
 
+@pytest.mark.slow
 def test_marg_gyro_from_any_rotation_closes_better(marg, data_dir):
     """The gyro matrix from 0.5-s spans of the field direction (not the end-to-end attitudes the check uses):
     closure median over the 12 moving files 14.5° before, now ≤ 9°; the axis tilts (2300–3200° each) ≤ 9°.

@@ -19,6 +19,7 @@ def test_corpus_present():
     assert len(PAPER) >= 2, "run python replay/make_corpus.py"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("log", PAPER, ids=lambda p: p.name)
 def test_batch_on_corpus_session(log):
     truth = Truth.load(str(log) + ".truth.json").calibration

@@ -23,6 +23,7 @@ def _direct(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("n,w,block", [(7, 5, 3), (1000, 2, 97), (1000, 100, 64), (120_001, 100, 1 << 15),
                                        (120_001, 2, 1 << 15)])
+@pytest.mark.slow
 def test_moving_std_in_blocks_is_the_windows_own_std(n, w, block):
     x = np.random.default_rng(n + w).normal(0.3, 1.0, (n, 3)) + np.array([0.0, 100.0, -9.81])
     m, s = moving_std(x, w, block=block)

@@ -83,6 +83,7 @@ def assert_same(path: Path, types: set[str] = TYPES) -> int:
     return n
 
 
+@pytest.mark.slow
 def test_simulated_flight_decodes_as_pymavlink(tmp_path):
     sim = simulate("flight", 2, duration=30, imu_rate=200.0, mag_rate=50.0)
     p = tmp_path / "f.bin"
@@ -90,6 +91,7 @@ def test_simulated_flight_decodes_as_pymavlink(tmp_path):
     assert assert_same(p) == sim.data.n_imu + sim.data.n_mag
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["tilt-sphere.csv", "rotate-360ccw-around-z-pointing-up.csv"])
 def test_measured_session_written_as_bin_decodes_as_pymavlink(tmp_path, name):
     src = DATA / "marg-set1" / name
@@ -135,6 +137,7 @@ def test_damaged_log_decodes_as_pymavlink(tmp_path, seed):
     assert assert_same(p, {"IMU", "MAG"}) > 0.9 * (sim.data.n_imu + sim.data.n_mag)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("chunk", [97, 1000, 4099])
 def test_records_across_chunk_boundaries_are_all_read(tmp_path, monkeypatch, chunk):
     # A log many chunks long: no record is lost or doubled where a chunk ends inside it (a chunk even

@@ -249,6 +249,7 @@ def test_degenerate_motion_does_not_drag_unexcited(kind, monkeypatch):
     assert any(f"turn about {a}" in m for m in cal.missing_motion() for a in unexc_axes)
 
 
+@pytest.mark.slow
 def test_divergence_reinitialises(paper1):
     sim, batch = paper1
     d = sim.data
@@ -332,6 +333,7 @@ def test_saturated_gyro_is_skipped_not_integrated(short_paper):
     assert _consistent_share(res_raw.calibration, truth) < _consistent_share(res.calibration, truth)
 
 
+@pytest.mark.slow
 def test_tenfold_noise_is_flagged_and_recovered(short_paper):
     """10× noise on every sensor for 20 s: raised as an event, weighted down, back to the spec after."""
     sim, init = short_paper
@@ -358,6 +360,7 @@ def test_tenfold_noise_is_flagged_and_recovered(short_paper):
     assert _consistent_share(res.calibration, sim.truth.calibration) >= 0.95
 
 
+@pytest.mark.slow
 def test_long_gap_restarts_attitude_and_recovers(short_paper):
     """5 s without samples mid-session: a gap event, the attitude restarts, the calibration carries on."""
     sim, init = short_paper
@@ -373,6 +376,7 @@ def test_long_gap_restarts_attitude_and_recovers(short_paper):
     assert res.nis["mag"]["in_band"] >= 0.8
 
 
+@pytest.mark.slow
 def test_cold_accel_at_one_static_pose_stays_consistent():
     """Cold accelerometer, 30 s of rest in one attitude: one pose says little about the accel (its norm
     along gravity), and the filter must not claim more. Updating with every block at a drifting

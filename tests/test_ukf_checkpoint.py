@@ -55,6 +55,7 @@ def _feed(cal, d, cuts):
         cal.feed(d.slice_imu(i, j))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("t_cut", [20.0, 55.0])  # inside the opening rest (a running rest), in motion
 def test_resume_through_json_is_bit_identical(t_cut):
     d = simulate("paper", 3, duration=70.0).data

@@ -81,6 +81,7 @@ def test_negative_or_nan_times_are_refused(tmp_path, paper):
         write_log(tmp_path / "x.ulg", bad)
 
 
+@pytest.mark.slow
 def test_batch_on_ulg_matches_exact_csv_and_tlog(tmp_path, paper):
     """The same session through three files: CSV (float64, exact), ULog (float32) and tlog (int16: 1 mG,
     1 mrad/s, 1 mgauss counts). ULog vs the exact CSV within σ/10 on every term (float32 rounding, 6e-8
@@ -99,6 +100,7 @@ def test_batch_on_ulg_matches_exact_csv_and_tlog(tmp_path, paper):
     assert max(r["n_sigma"] for r in tl) < 5.0
 
 
+@pytest.mark.slow
 def test_simulate_cli_writes_ulg(tmp_path):
     out = tmp_path / "s.ulg"
     r = subprocess.run([sys.executable, "-m", "onlinecal", "simulate", "--out", str(out), "--duration", "20",

@@ -266,13 +266,14 @@ def _ukf() -> Any:
     return ukf
 
 
-def online_health(res: Any, logs: Sequence[Any] | None = None) -> dict[str, Any]:
-    """Health of an online result (replay, run, fleet): NIS, events, observability, ranges, mag coverage."""
+def online_health(res: Any, logs: Sequence[Any] | None = None, mag_start: str | None = None) -> dict[str, Any]:
+    """Health of an online result (replay, run, fleet): NIS, events, observability, ranges, mag coverage.
+    ``mag_start``: "file" (started from a calibration file), "batch" (from the batch of these logs), None."""
     from .health import assess
 
     return assess(res.calibration, events=getattr(res, "events", None), nis=getattr(res, "nis", None),
                   observability=getattr(res, "observability", None),
-                  mag_raw=_mag_raw(logs) if logs else None, raw=_raw(logs))
+                  mag_raw=_mag_raw(logs) if logs else None, raw=_raw(logs), mag_start=mag_start)
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
@@ -366,7 +367,7 @@ def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs
     data did not determine, the files written; the exit status by the verdict."""
     from .report import truth_table
 
-    health = online_health(res, logs)
+    health = online_health(res, logs, None if start is None else ("batch" if label == "batch" else "file"))
     print(truth_table(None, start, res.calibration, labels=(label, "online")), file=_human(a.json))
     _print_observability(res.calibration, _human(a.json))
     _wrote(res.calibration, health, a.json, report, written)

@@ -123,7 +123,8 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
         from .health import assess
 
         health = assess(res.calibration, nis=res.nis, events=res.events, observability=res.observability,
-                        mag_raw=d.mag if d.n_mag else None, raw={"gyro": d.gyro, "accel": d.acc})
+                        mag_raw=d.mag if d.n_mag else None, raw={"gyro": d.gyro, "accel": d.acc},
+                        mag_start=None if cal0 is None else ("batch" if init == "batch" else "file"))
         rec["calibration"] = res.calibration.replace(health=health).to_dict()
         rec["health"] = health
         rec["warnings"] = list(dict.fromkeys(warnings))

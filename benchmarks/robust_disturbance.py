@@ -27,7 +27,7 @@ from onlinecal.ukf import replay
 
 
 def offset_prior(truth: Calibration, seed: int) -> Calibration:
-    """The truth moved by 0.8 prior σ in random directions, with that σ (as tests/test_ukf.py)."""
+    """The truth moved by 0.8 prior σ in random directions, with that σ (the start tests/test_ukf.py uses too)."""
     rng = np.random.default_rng(seed)
     sig = {"gyro": {"bias": 2e-3, "scale": 5e-3, "alpha": 5e-3, "xi": 5e-3},
            "accel": {"bias": 0.03, "scale": 3e-3, "alpha": 5e-3, "xi": 5e-3},

@@ -6,7 +6,6 @@ statistical flight runs are reduced-seed versions of ``benchmarks/flight_stats.p
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -14,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from benchload import benchmark
 
 from onlinecal.sim import simulate
 from onlinecal.ukf import replay
@@ -24,12 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _flight_stats():
-    spec = importlib.util.spec_from_file_location("flight_stats", ROOT / "benchmarks" / "flight_stats.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["flight_stats"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark("flight_stats")
 
 
 # -- unit level -------------------------------------------------------------------------------------

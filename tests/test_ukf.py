@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from benchload import benchmark
 
 import onlinecal.sim.sensors as simsens
 from onlinecal.batch.pipeline import run_batch
@@ -136,17 +137,7 @@ def _sim_traj(traj: Trajectory, seed: int, monkeypatch: pytest.MonkeyPatch):
 
 def _offset_prior(truth: Calibration, seed: int) -> Calibration:
     """The truth moved by 0.8 prior σ in random directions, with that σ: the filter's start."""
-    rng = np.random.default_rng(seed)
-    sig = {"gyro": {"bias": 2e-3, "scale": 5e-3, "alpha": 5e-3, "xi": 5e-3},
-           "accel": {"bias": 0.03, "scale": 3e-3, "alpha": 5e-3, "xi": 5e-3},
-           "mag": {"bias": 3e-3, "scale": 0.02, "alpha": 5e-3, "xi": 5e-3}}
-    out = {}
-    for s in SENSORS:
-        p = truth.sensor(s).params()
-        new = {k: p[k] + 0.8 * sig[s][k] * np.sign(rng.normal(size=3)) for k in PARAMS}
-        out[s] = type(truth.sensor(s)).from_params(new["bias"], new["scale"], new["alpha"], new["xi"],
-                                                    sigma={k: [sig[s][k]] * 3 for k in PARAMS})
-    return Calibration(source="batch", **out)
+    return benchmark("robust_disturbance").offset_prior(truth, seed)
 
 
 def _ramped_rate(tr: Trajectory, gimbal: int, w: float, T: float, body_axis: int, T_ramp: float = 3.0):

@@ -20,7 +20,7 @@ import numpy as np
 
 from onlinecal.batch import run_batch
 from onlinecal.batch.ellipsoid import FitError
-from onlinecal.health import assess
+from onlinecal.health import assess, filter_start
 from onlinecal.model import PARAMS, SENSORS, Calibration
 from onlinecal.sim import simulate
 from onlinecal.ukf import replay
@@ -92,7 +92,8 @@ def _runs(a: argparse.Namespace, tally: dict[tuple[str, str], dict[str, int]]) -
                 continue
             raw = {"gyro": sim.data.gyro, "accel": sim.data.acc}  # as the command line passes them (cli._raw)
             results = [("batch", b.calibration, assess(b.calibration, mag_raw=mag, raw=raw))]
-            r = replay([sim.data], b.calibration)
+            start, _ = filter_start(b.calibration, mag)  # as `replay --init batch` starts the filter
+            r = replay([sim.data], start)
             results.append(("online", r.calibration, assess(r.calibration, nis=r.nis, events=r.events,
                                                            observability=r.observability, mag_raw=mag, raw=raw)))
             for stage, cal, h in results:

@@ -247,12 +247,15 @@ def _initial(a: argparse.Namespace, logs: list[Any]) -> tuple[Any, Any]:
         return None, None
     if a.init == "batch":
         from .batch import run_batch
+        from .health import filter_start
         from .progress import spinner
 
         with spinner("batch (the filter's start)"):
             res = run_batch(logs)
         _warn(res.warnings)
-        return res.calibration, res
+        start, notes = filter_start(res.calibration, _mag_raw(logs))
+        _warn(notes)
+        return start, res
     return _load_cal(a.init), None
 
 

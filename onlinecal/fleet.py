@@ -110,8 +110,10 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
         warnings = list(d.warnings)
         if init == "batch":
             b = run_batch([d], g=g)
-            cal0: Calibration | None = b.calibration
-            warnings += b.warnings
+            from .health import filter_start
+
+            cal0, notes = filter_start(b.calibration, d.mag if d.n_mag else None)
+            warnings += b.warnings + notes
         elif init is None or init == "none":
             cal0 = None
         elif isinstance(init, dict):

@@ -38,12 +38,10 @@ def test_vehicle_disturbed_accel_nis_goes_to_its_own_stream_scaled_by_k():
     mon = NisMonitor(window=10, band_p=0.001, factor=5.0, windows=3)
     for i in range(20):
         mon.record("accel", 3.0, float(i))  # rest: R = sensor noise
-    mon.inflated = 300.0
     for i in range(30):
-        assert mon.record("accel", 0.004, 20.0 + i) is None
-        mon.record("mag", 2.0, 20.0 + i)  # the mag is never disturbed by the vehicle
+        assert mon.record("accel", 0.004, 20.0 + i, inflated=300.0) is None
+        mon.record("mag", 2.0, 20.0 + i, inflated=300.0)  # the mag is never disturbed by the vehicle
     assert mon.last("accel") == pytest.approx(0.004)
-    mon.inflated = 0.0
     s = mon.summary(0)
     assert s["accel"]["updates"] == 20 and s["accel"]["mean"] == pytest.approx(3.0)
     assert s["accel"]["vehicle"]["updates"] == 30 and s["accel"]["vehicle"]["mean"] == pytest.approx(1.2)
@@ -54,9 +52,7 @@ def test_vehicle_stream_never_triggers_a_divergence_but_the_rest_stream_does():
     """A correlated disturbance makes a 10-s window one draw: the vehicle stream is judged over the run by
     the health verdict, not by the divergence test; the sensor-noise stream keeps the divergence test."""
     mon = NisMonitor(window=10, band_p=0.001, factor=5.0, windows=3)
-    mon.inflated = 300.0
-    assert all(mon.record("accel", 10.0, float(i)) is None for i in range(100))  # NIS·k = 3000
-    mon.inflated = 0.0
+    assert all(mon.record("accel", 10.0, float(i), inflated=300.0) is None for i in range(100))  # NIS·k = 3000
     why = [mon.record("accel", 1000.0, float(i)) for i in range(30)]
     assert why[-1] is not None and "accel NIS window mean" in why[-1]
 
@@ -67,9 +63,8 @@ def test_checkpoint_from_before_the_split_still_records():
     mon.stats = json.loads(json.dumps({"accel": {"sum": 0.0, "n": 0, "windows": [], "bad_run": 0, "rejected": 0,
                                                  "updates": 5}, "mag": {"sum": 0.0, "n": 0, "windows": [],
                                                                         "bad_run": 0, "rejected": 0, "updates": 0}}))
-    mon.inflated = 2.0
-    mon.record("accel", 1.0, 0.0)
-    mon.reject("accel")
+    mon.record("accel", 1.0, 0.0, inflated=2.0)
+    mon.reject("accel", inflated=2.0)
     assert mon.stats["accel"]["vehicle"]["updates"] == 1 and mon.stats["accel"]["vehicle"]["rejected"] == 1
     assert mon.stats["accel"]["updates"] == 5
 

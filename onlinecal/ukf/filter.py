@@ -232,8 +232,8 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------------------------------
     # health (:mod:`.health`)
-    def _nis_record(self, sensor: str, nis: float, t: float) -> None:
-        why = self._nis.record(sensor, nis, t)
+    def _nis_record(self, sensor: str, nis: float, t: float, inflated: float = 0.0) -> None:
+        why = self._nis.record(sensor, nis, t, inflated)
         if why is not None:
             self._diverged(why, t, sensor)
 

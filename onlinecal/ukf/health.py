@@ -12,7 +12,7 @@ accelerometer's R outside a rest (:func:`.vehicle.vehicle_accel_var`: σ_v²·k,
 times (actual acceleration / σ_v)²: about 0.003 on a clean multirotor flight (k = 300), and mixed with the
 rest updates it dragged a clean flight's accel mean NIS to 0.7–0.9, below the band — the design, not an
 overstated sensor noise, and it hid the sensor's own consistency. So an accel update whose R carries the
-disturbance (``inflated`` = k, set by the filter for that update) goes to the sensor's ``vehicle``
+disturbance (``inflated`` = k, passed with that update) goes to the sensor's ``vehicle``
 sub-stream as NIS·k, which judges the innovation against σ_v² itself: ≤ d while the vehicle stays within
 the modelled bound, whatever the block length. That stream is judged one-sided over the whole run
 (:func:`onlinecal.health.nis_checks`: only *above* 2d is a fault, the bound did not cover the flight) and
@@ -80,15 +80,12 @@ class NisMonitor:
     factor: float
     windows: int
     stats: dict[str, dict[str, Any]] = field(default_factory=lambda: {s: new_nis_stats() for s in ("accel", "mag")})
-    # set by the filter around an update whose accel R carries the vehicle disturbance: its accel NIS goes
-    # to stats["accel"]["vehicle"] (see the module doc); transient, not part of the checkpoint
-    inflated: float = 0.0
 
-    def _stream(self, sensor: str) -> dict[str, Any]:
-        """The bookkeeping an accel/mag update of ``sensor`` goes to now (the vehicle sub-stream for a
-        disturbed accel update)."""
+    def _stream(self, sensor: str, inflated: float) -> dict[str, Any]:
+        """The bookkeeping an update of ``sensor`` goes to: the ``vehicle`` sub-stream for an accel update
+        whose R carries the vehicle disturbance (``inflated`` = k > 0, see the module doc)."""
         st = self.stats[sensor]
-        if self.inflated > 0 and sensor == "accel":
+        if inflated > 0 and sensor == "accel":
             return st.setdefault("vehicle", new_nis_stats())  # a checkpoint from before has none
         return st
 
@@ -96,21 +93,22 @@ class NisMonitor:
         """Band (lo, hi) of a window's mean NIS (``dof`` per update)."""
         return _window_band(self.window, self.band_p, dof)
 
-    def reject(self, sensor: str) -> None:
-        """Count an update of ``sensor`` gated out (dropped or R inflated)."""
-        self._stream(sensor)["rejected"] += 1
+    def reject(self, sensor: str, inflated: float = 0.0) -> None:
+        """Count an update of ``sensor`` gated out (dropped or R inflated); ``inflated`` as in :meth:`record`."""
+        self._stream(sensor, inflated)["rejected"] += 1
 
-    def record(self, sensor: str, nis: float, t: float) -> str | None:
-        """Add one NIS of ``sensor`` at log time t s; returns why it diverged, or None."""
+    def record(self, sensor: str, nis: float, t: float, inflated: float = 0.0) -> str | None:
+        """Add one NIS of ``sensor`` at log time t s; returns why it diverged, or None. ``inflated`` = k > 0:
+        the update's accel R carried the vehicle disturbance σ_v²·k (its NIS goes to the vehicle stream)."""
         self.stats[sensor]["last"] = nis  # the trace's nis.<sensor>: whichever stream
-        st = self._stream(sensor)
+        st = self._stream(sensor, inflated)
         if st is not self.stats[sensor]:
             # vehicle-disturbed: R carries σ_v²·k (k = max(1, τ_v/Δt), one σ_v-measurement per correlation
             # time spread over k blocks); ν's disturbance part has the vehicle's own per-block variance, so
             # NIS·k judges it against σ_v² itself (≤ d while the vehicle stays within the bound). Kept out
             # of the divergence test: a correlated disturbance makes 10-s windows one draw each, and the
             # health verdict judges this stream over the whole run (onlinecal.health)
-            _add(st, nis * self.inflated, t, self.window)
+            _add(st, nis * inflated, t, self.window)
             return None
         mean = _add(st, nis, t, self.window)
         if mean is None:

@@ -155,9 +155,8 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
     # not at rest (rests go to rest_step): an accel outlier is motion the model lacks, dropped
     k = cal._div.count
     # a vehicle-disturbed accel NIS is judged apart, against σ_v² (.health.NisMonitor)
-    cal._nis.inflated = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
-    res = gated_update(cal, Y, x_pred, P_pred, meas, False, tl, damp=cal.config.update_damping)
-    cal._nis.inflated = 0.0
+    k_v = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
+    res = gated_update(cal, Y, x_pred, P_pred, meas, False, tl, damp=cal.config.update_damping, inflated=k_v)
     if cal._div.count == k:  # else the update declared a divergence: the restarted state stands
         commit(cal, res.x, res.P, tl)
 
@@ -211,9 +210,11 @@ def sigma_points_of(cal: OnlineCalibrator) -> Array:
 
 
 def gated_update(cal: OnlineCalibrator, Y: Array, x_pred: Array, P_pred: Array, meas: list[Measurement],
-                 static: bool, t: float, record: bool = True, post: bool = False, damp: float = 0.0) -> UpdateResult:
+                 static: bool, t: float, record: bool = True, post: bool = False, damp: float = 0.0,
+                 inflated: float = 0.0) -> UpdateResult:
     """:func:`.unscented.update` with this filter's gates and consider states, then the NIS
-    bookkeeping in measurement order (``record``: the NIS values enter the windows)."""
+    bookkeeping in measurement order (``record``: the NIS values enter the windows; ``inflated`` = k > 0:
+    the accel R carried the vehicle disturbance, :meth:`.health.NisMonitor.record`)."""
     res = update(Y, x_pred, P_pred, meas, cal._Wm, cal._Wc, Gating(cal._gates, static),
                  cal.lay.consider, damp, post)
     for s, nis, status in res.nis:
@@ -224,12 +225,12 @@ def gated_update(cal: OnlineCalibrator, Y: Array, x_pred: Array, P_pred: Array, 
         if status == "drop":
             # motion the model has no term for (linear acceleration): an outlier, not a statistic of
             # the filter's consistency — dropped and counted, kept out of the NIS windows
-            cal._nis.reject(s)
+            cal._nis.reject(s, inflated)
             continue
         if record:
-            cal._nis_record(s, nis, t)
+            cal._nis_record(s, nis, t, inflated)
         if status == "soft":
-            cal._nis.reject(s)
+            cal._nis.reject(s, inflated)
     return res
 
 

@@ -329,6 +329,15 @@ def _mag_fitted_here(cal: Calibration, observability: dict[str, Any] | None, mag
                for k, v in observability.items() if k.startswith(("mag.bias.", "mag.scale.")))
 
 
+def _raw_coverage(mag: Any, mag_raw: Any) -> float | None:
+    """:func:`mag_coverage` of the raw samples ``mag_raw`` (M, 3) calibrated by ``mag``; None when they
+    cannot be (not a numeric (M, 3) array)."""
+    try:
+        return mag_coverage(mag.apply(np.asarray(mag_raw, float).reshape(-1, 3)))
+    except (ValueError, TypeError):
+        return None
+
+
 def filter_start(cal: Calibration, mag_raw: Any = None) -> tuple[Calibration, list[str]]:
     """A batch result as the online filter's start (``replay --init batch``, the fleet): a magnetometer whose
     ellipsoid fit (eq. 17) saw under :data:`COVERAGE_MIN` of the field directions in ``mag_raw`` (M, 3) is
@@ -339,11 +348,8 @@ def filter_start(cal: Calibration, mag_raw: Any = None) -> tuple[Calibration, li
     mag, seeds 0–3 end ok with every determined term within 1σ (docs/json.md). Returns (start, warnings)."""
     if cal.mag is None or mag_raw is None or np.size(mag_raw) == 0:
         return cal, []
-    try:
-        cov = mag_coverage(cal.mag.apply(np.asarray(mag_raw, float).reshape(-1, 3)))
-    except (ValueError, TypeError):
-        return cal, []
-    if cov >= COVERAGE_MIN:
+    cov = _raw_coverage(cal.mag, mag_raw)
+    if cov is None or cov >= COVERAGE_MIN:
         return cal, []
     return cal.replace(mag=None), [
         f"mag: the batch's magnetometer fit saw only {100 * cov:.0f} % of the field directions (need "
@@ -409,10 +415,7 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
     checks["rail_samples"] = rails
     notes: list[str] = []
     if mag_raw is not None and cal.mag is not None and _mag_fitted_here(cal, observability, mag_start, events or ()):
-        try:
-            cov = mag_coverage(cal.mag.apply(np.asarray(mag_raw, float).reshape(-1, 3)))
-        except (ValueError, TypeError):
-            cov = None
+        cov = _raw_coverage(cal.mag, mag_raw)
         checks["mag_coverage"] = cov
         if cov is not None and cov < COVERAGE_MIN:
             found.append(("degraded", f"mag: the samples point in only {100 * cov:.0f} % of directions (need "

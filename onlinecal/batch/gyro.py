@@ -820,3 +820,50 @@ def bias_per_file(segs: list[Segmentation]) -> dict[str, dict[str, Any]]:
                          "temp_c": float(np.nanmean(temp)) if np.isfinite(temp).any() else None,
                          "from": f"this file's rests, {PER_FILE_EDGE_S:.0f} s or more from its ends"}
     return out
+
+
+def axis_gain_from_transitions(segs: list[Segmentation], G: Array, o: Array, acc: SensorCalibration | None,
+                               mag: SensorCalibration | None, axis: int, skip: set[tuple[int, int]] | None = None
+                               ) -> tuple[float, float, int]:
+    """How much the rest-to-rest motions want row ``axis`` of G scaled (eq. 36 generalised, one factor f):
+    the residuals ``v_after − Cᵀ v_before`` of :func:`refine_gyro_matrix` with ``G[axis] *= f``, linearised
+    about f = 1 and solved by least squares; σ from the residual scatter (each residual component an
+    independent draw). ``skip``: (log index, motion index) pairs left out — e.g. the turns whose angle is
+    being checked, so the factor is not fitted to them. Returns (f, 1σ, motions used).
+
+    A turn about the vertical leaves gravity unchanged: its own angle is not in its residual, and the
+    factor comes from the other motions (the faces of a Ferraris session)."""
+    skip = skip or set()
+    incs: list[Array] = []
+    pairs: list[tuple[int, Array, Array]] = []
+    for j, s in enumerate(segs):
+        for i, iv in enumerate(s.motions):
+            # the motions refine_gyro_matrix uses (_collect_transitions), less the skipped ones
+            if (j, i) in skip or s.gapped(iv) or s.noisy(iv) or iv.duration > MAX_TRANSITION_S:
+                continue
+            vecs = _vectors(s, acc, mag, iv)
+            if not vecs:
+                continue
+            t = s.data.t_imu[iv.i0:iv.i1]
+            w = s.data.gyro[iv.i0:iv.i1] - o
+            incs.append(0.5 * (w[1:] + w[:-1]) * np.diff(t)[:, None])
+            pairs += [(len(incs) - 1, v0, v1) for v0, v1, _ in vecs]
+    if len(pairs) < 2:
+        raise FitError("too few rest-to-rest motions to test a gyro axis scale")
+
+    def r(f: float) -> Array:
+        G2 = G.copy()
+        G2[axis] *= f
+        out = []
+        for i, v0, v1 in pairs:
+            C = ordered_product(rodrigues(incs[i] @ G2.T)[None])[0]
+            out.append(v1 - C.T @ v0)
+        return np.concatenate(out)
+
+    h = 1e-4
+    r0 = r(1.0)
+    J = (r(1.0 + h) - r0) / h
+    f = 1.0 - float(J @ r0) / float(J @ J)
+    r1 = r(f)
+    s2 = float(r1 @ r1) / max(1, r1.size - 1)
+    return f, float(np.sqrt(s2 / float(J @ J))), len({p[0] for p in pairs})

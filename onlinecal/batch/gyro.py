@@ -773,7 +773,8 @@ def _clip_report(segs: list[Segmentation], clips: list[tuple[NDArray[np.bool_], 
         t0 = s.data.t_imu[0]
         where = ", ".join(f"{r.t0 - t0:.2f}–{r.t1 - t0:.2f} s ({r.axes})" for r in runs[:6])
         more = f" and {len(runs) - 6} more" if len(runs) > 6 else ""
-        rail = ", ".join(f"{'xyz'[k]} ±{rails[k]:.4g}" for k in range(3) if np.isfinite(rails[k]))
+        hit = set("".join(r.axes for r in runs))
+        rail = ", ".join(f"{'xyz'[k]} ±{rails[k]:.4g}" for k in range(3) if "xyz"[k] in hit)
         lost_txt = (f"; the field kinematics put the rotation the clipped readings missed at ≈ {sum(lost):.0f}° "
                     f"in all ({max(lost):.0f}° in the worst stretch)" if lost else "")
         warnings.append(f"gyro: {s.data.source}: {int(m.sum())} samples at the gyro's rail ({rail} rad/s) in "

@@ -459,9 +459,12 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
                 # Rests measure the bias directly (eqs. 34-35); the joint fit's bias absorbs whatever
                 # else the spans disagree on (MARG set: 2.2 mrad/s on y, 2.5σ, and the unmoved files
                 # close at 8.7-9.7° with it against 1.6-3.0° with the rests'). G is refitted given o.
-                o_joint = o_k
+                o_joint, cov_joint = o_k, cov12
                 G_k, o_k, cov12, figs = fit_gyro_kinematic(segs, mag, acc, g, bias=o, exclude=excl)
                 figs["bias_joint_fit"] = o_joint.tolist()
+                # σ of G: the joint fit's, marginal over the bias (given the bias it would be optimistic by
+                # what a per-recording bias offset does to G, which the rests cannot rule out)
+                cov12 = cov_joint
         except FitError as e:
             what = "".join("xyz"[k] for k in missing)
             rep.warnings.append(

@@ -126,11 +126,13 @@ def test_unmoved_files_close_with_the_rests_bias_and_with_their_own(marg_batch, 
     un = [f for f in files if f.name in ("unmoved-x-pointing-forward.csv", "unmoved-x-pointing-up.csv")]
     pooled = _closure(data_dir, cal, un, tmp_path)
     assert max(pooled.values()) <= 3.5, pooled
-    bpf = {Path(k).name: v for k, v in res.steps["gyro"].figures["bias_per_file"].items()}
+    per = {Path(k).name: c for k, c in gy.per_file_calibrations(res.calibration).items()}
+    assert sorted(per) == ["unmoved-x-pointing-forward.csv", "unmoved-x-pointing-up.csv",
+                           "unmoved-z-pointing-left.csv"]
     for f in un:
-        c = json.loads(json.dumps(cal))
-        c["gyro"]["bias"] = bpf[f.name]["bias"]
-        own = _closure(data_dir, c, [f], tmp_path)[f.name]
+        p = tmp_path / f"own-{f.name}.json"
+        per[f.name].save(p)  # the per-file calibration JSON the check reads
+        own = _closure(data_dir, json.loads(p.read_text()), [f], tmp_path)[f.name]
         assert own <= 1.0, (f.name, own)
 
 

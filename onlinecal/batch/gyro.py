@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ..io.base import ImuData
-from ..model import SensorCalibration
+from ..model import Calibration, SensorCalibration
 from .decomp import decompose_many
 from .ellipsoid import FitError
 from .segment import Interval, Phase, Segmentation, moving_std
@@ -871,3 +871,24 @@ def axis_gain_from_transitions(segs: list[Segmentation], G: Array, o: Array, acc
     r1 = r(f)
     s2 = float(r1 @ r1) / max(1, r1.size - 1)
     return f, float(np.sqrt(s2 / float(J @ J))), len({p[0] for p in pairs})
+
+
+def per_file_calibrations(cal: Calibration) -> dict[str, Calibration]:
+    """One calibration per recording that rests, for an out-of-fit check that applies only matrix and bias
+    (``../shared/tools/gyro_closure.py``): the batch's calibration with the gyro bias (and its σ) replaced by
+    that file's own (:func:`bias_per_file`, in ``meta.batch.steps.gyro.figures.bias_per_file``); everything
+    else pooled. Files without their own bias are absent. Returns file → calibration."""
+    meta = cal.meta.get("batch", {}) if cal.meta else {}
+    per = meta.get("steps", {}).get("gyro", {}).get("figures", {}).get("bias_per_file", {})
+    g = cal.gyro
+    out: dict[str, Calibration] = {}
+    if g is None:
+        return out
+    for src, r in per.items():
+        if r.get("bias") is None:
+            continue
+        sig = {k: v for k, v in g.sigma.items()}
+        sig["bias"] = list(r["sigma"])
+        gf = SensorCalibration(np.asarray(r["bias"], float), g.matrix, sig)
+        out[src] = cal.replace(gyro=gf, meta={"per_file_bias_of": src, **dict(cal.meta or {})})
+    return out

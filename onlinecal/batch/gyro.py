@@ -400,9 +400,12 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
                   rng: np.random.Generator, g: float = 9.80665) -> tuple[SensorCalibration, StepReport]:
     """The tool-free gyro pipeline: bias (34–35) → axes (28–31) → scale (36) → eq. 36 over all motions;
     where neither phases about all three axes nor four rest-to-rest motions exist (a hand-held session),
-    eq. 36 generalised to any rotation (:func:`fit_gyro_kinematic`). Where none of these can run, the
-    scale and axes are *undetermined*: the matrix stays the identity, its σ is absent, and
-    ``figures["undetermined"]`` lists the terms with a warning naming the missing motion.
+    eq. 36 generalised to any rotation (:func:`fit_gyro_kinematic`): with the rests' bias where there are
+    rests (the matrix fitted given it; the joint fit's bias kept in the figures), spans with clipped readings
+    left out, each clipped file named in a warning with its clipped times and the rotation they lost
+    (``figures["clipped"]``), and each resting recording's own bias in ``figures["bias_per_file"]``.
+    Where none of these can run, the scale and axes are *undetermined*: the matrix stays the identity, its σ
+    is absent, and ``figures["undetermined"]`` lists the terms with a warning naming the missing motion.
     """
     rep = StepReport("gyro")
     try:
@@ -457,7 +460,7 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
             G_k, o_k, cov12, figs = fit_gyro_kinematic(segs, mag, acc, g, exclude=excl)
             if o is not None and sig_o is not None:
                 # Rests measure the bias directly (eqs. 34-35); the joint fit's bias absorbs whatever
-                # else the spans disagree on (MARG set: 2.2 mrad/s on y, 2.5σ, and the unmoved files
+                # else the spans disagree on (MARG set: 2.6 mrad/s on y, ~3σ, and the unmoved files
                 # close at 8.7-9.7° with it against 1.6-3.0° with the rests'). G is refitted given o.
                 o_joint, cov_joint = o_k, cov12
                 G_k, o_k, cov12, figs = fit_gyro_kinematic(segs, mag, acc, g, bias=o, exclude=excl)
@@ -584,6 +587,10 @@ def fit_gyro_kinematic(segs: list[Segmentation], mag: SensorCalibration | None, 
     solve, windows beyond 5 MAD (a disturbance, a knock) dropped and the solve repeated. Bias, scale,
     misalignment, non-orthogonality, a wrong axis sign and a mounting rotation of any angle are all
     inside G. G comes out in the frame of the reference vectors (the magnetometer's when it is given).
+
+    ``bias`` (3,) raw rad/s: known (the rests' eqs. 34–35) — the rows then hold G alone (9 unknowns), the
+    returned o is ``bias`` and the covariance's bias block is zero. ``exclude``: per log, an (N,) mask of IMU
+    samples no window may contain (clipped readings: their rate is not the body's).
 
     Returns (G (3, 3), o (3,), covariance of (vec G, b) (12, 12), figures). Raises FitError when the
     rotation seen does not determine all 12 unknowns (the smallest singular value of the design names

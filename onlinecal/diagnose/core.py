@@ -33,6 +33,7 @@ from ..batch.segment import noise_floors, segment
 from ..io.base import ImuData
 from ..model import Calibration
 from ..specs import G0
+from . import magcurrent
 from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, MIN_RATE_HZ, REQUIRES, Adequacy, assess, coverage
 from .analysis import Analysis, analyse, channel_mask, one_blas_thread, restrict
 from .detectors import Handedness, Saturated, candidates, find_axis_sign, find_saturation
@@ -90,6 +91,7 @@ EVIDENCE = {
                           "what a linear scale absorbs",
     "lever_arm": "accelerometer residuals follow ω̇×r + ω×(ω×r) during turns (|f| ≠ g while rotating)",
     "time_offset": "the {sensor} lags the other sensors: the kinematic residual follows −δ·v̇ during turns",
+    "mag_current": magcurrent.EVIDENCE,
 }
 
 
@@ -132,6 +134,8 @@ def _extension(f: Finding, T0: float | None) -> dict[str, Any]:
         e = {"sensor": f.sensor, "limit": p["limit"]}
     elif f.effect == "axis_sign":
         e = {"sensor": f.sensor, "axis": f.axis}
+    elif f.effect == "mag_current":
+        e = magcurrent.extension(p)
     return e
 
 
@@ -338,6 +342,8 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     exts = {k: v[0] if len(v) == 1 else v for k, v in exts.items()}
     gbr = gyro_bias_rests(designs, cal, exts.get("g_sensitivity"))
     ext_cal = _honest_gyro_sigma(cal.replace(extensions=exts), gbr)
+    if "mag_current" in exts and calibration is None:  # a batch on these logs: its hard iron holds k·x̄
+        ext_cal = magcurrent.interference_free_bias(ext_cal, logs, exts["mag_current"])
     base_beta, _ = an.problem.fit(["nuisance"])
     r_meas = an.problem.residual(["nuisance"], base_beta)
     nb, _ = null.problem.fit(["nuisance"])
@@ -384,7 +390,7 @@ def _ukf_stage(diag: Diagnosis, logs: list[ImuData], cal: Calibration, exts: dic
     diag.baseline["ukf"] = before
     if "error" in before or not any(k not in NOT_CORRECTED for k in exts):
         return
-    after = run_ukf(logs, cal, exts)
+    after = run_ukf(logs, cal.replace(mag=diag.calibration.mag) if "mag_current" in exts else cal, exts)
     diag.ukf_extended = after
     if "error" in after:
         return

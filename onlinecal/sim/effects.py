@@ -779,9 +779,12 @@ class MagCurrent(Effect):
 
 def random_mag_current(rng: np.random.Generator) -> MagCurrent:
     """A motor interference of a realistic size: basis current or throttle, a uniformly random direction in the
-    raw frame, 0.05…0.3 of the field (≈ raw unit) at full throttle — per A for the current basis (÷ I_FULL_A)."""
+    raw frame, 0.05…0.3 of the field at full throttle (the simulator's raw unit is the gauss, its field
+    FIELD_GAUSS = 0.48 G; compassmot calls up to 30 % acceptable) — per A for the current basis (÷ I_FULL_A)."""
+    from ..specs import FIELD_GAUSS
+
     u = rng.standard_normal(3)
-    k = u / np.linalg.norm(u) * float(rng.uniform(0.05, 0.3))
+    k = u / np.linalg.norm(u) * float(rng.uniform(0.05, 0.3)) * FIELD_GAUSS
     basis = str(rng.choice(["current", "throttle"]))
     if basis == "current":
         k = k / I_FULL_A

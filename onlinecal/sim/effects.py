@@ -698,6 +698,24 @@ class MagDisturbance(Effect):
 I_FULL_A = 40.0
 I_AVIONICS_A = 0.5
 SERIES_RATE_HZ = 10.0  # ArduPilot logs BAT and CTUN at 10 Hz (copter's 10-Hz loop); the simulator's series rate
+# The motors' current follows the throttle command through the rotor's mechanical time constant: 50–150 ms for
+# 5–10-inch props on 2-4 kg-thrust motors (ESC step-response measurements, e.g. Bangura & Mahony 2012); 0.1 s.
+# (ArduCopter also ramps the take-off over MOT_SPOOL_TIME = 0.5 s; the trajectory's throttle steps instantly.)
+TAU_MOTOR_S = 0.1
+
+
+def motor_throttle(trajectory: Any, t: Array) -> Array:
+    """The throttle the motors deliver at times t (N,) s: the trajectory's throttle command through a first-order
+    lag of TAU_MOTOR_S on its integration grid, zero-order hold between grid points. This is what the current
+    (and so the interference) follows; the simulator logs it as the throttle series as well."""
+    from scipy.signal import lfilter
+
+    u = np.asarray(trajectory.throttle, float)
+    a = float(trajectory.dt) / (TAU_MOTOR_S + float(trajectory.dt))  # backward-Euler discretisation
+    y = lfilter([a], [1.0, a - 1.0], u, zi=[(1.0 - a) * u[0]])[0] if u.size else u
+    k = np.clip(np.floor(np.asarray(t, float) / trajectory.dt).astype(np.intp), 0, max(u.size - 1, 0))
+    out: Array = y[k]
+    return out
 
 
 def battery_current(throttle: Array) -> Array:
@@ -713,7 +731,7 @@ def vehicle_series(trajectory: Any, duration: float, rate: float = SERIES_RATE_H
     if not hasattr(trajectory, "throttle") or not hasattr(trajectory, "at"):
         return {}
     t = np.arange(0.0, duration + 1e-9, 1.0 / rate)
-    thr = np.asarray(trajectory.at("throttle", t), float)
+    thr = motor_throttle(trajectory, t)
     return {"throttle": (t, thr), "current": (t.copy(), battery_current(thr))}
 
 
@@ -727,8 +745,8 @@ class MagCurrent(Effect):
     (3,) is in the **raw** magnetometer frame and unit, before the hard- and soft-iron model, raw = M⁻¹·c + o +
     coeff·x (stage 2, additive at the sample's stamp). The export maps it to each firmware's frame (ArduPilot
     adds COMPASS_MOT after its soft iron, PX4 CAL_MAGn_xCOMP before; ``export._compassmot``).
-    x comes from the vehicle trajectory's throttle (:func:`battery_current` for the current), so the effect
-    needs a vehicle profile (multirotor, fixedwing). Real vehicles: compassmot accepts interference up to 30 %
+    x comes from the vehicle trajectory's throttle as the motors deliver it (:func:`motor_throttle`, a 0.1-s
+    lag; :func:`battery_current` for the current), so the effect needs a vehicle profile (multirotor, fixedwing). Real vehicles: compassmot accepts interference up to 30 %
     of the field at full throttle, 60 % is "bad" (ArduPilot compass-setup-advanced); a 40-A quad with the
     compass on the frame near the power leads shows 0.1–0.3 field at full throttle, i.e. ~1e-3…8e-3 field per A.
     On the command line coeff is 3 numbers separated by ``;`` (``mag_current:basis=current,coeff=2e-3;0;-3e-3``).
@@ -769,7 +787,7 @@ class MagCurrent(Effect):
         if not hasattr(trajectory, "throttle") or not hasattr(trajectory, "at"):
             raise EffectError(f"{self.name}: needs a vehicle profile (multirotor, fixedwing) for its "
                               f"{self.basis}; this profile has no motors")
-        thr = np.asarray(trajectory.at("throttle", t), float)
+        thr = motor_throttle(trajectory, t)
         return thr if self.basis == "throttle" else battery_current(thr)
 
     def apply(self, ctx: SimContext) -> None:

@@ -161,8 +161,8 @@ def interference_free_bias(cal: Calibration, logs: list[ImuData], entry: dict[st
     if cal.mag is None:
         return cal
     b, k = entry["basis"], np.asarray(entry["coeff"], float)
-    xs = [np.interp(d.t_mag, *(np.asarray(v, float) for v in d.series[b])) for d in logs
-          if b in d.series and d.n_mag and np.asarray(d.series[b][0]).size >= 2]
+    xs = [np.interp(np.asarray(d.t_mag, float), np.asarray(d.series[b][0], float), np.asarray(d.series[b][1], float))
+          for d in logs if b in d.series and d.n_mag and np.asarray(d.series[b][0]).size >= 2]
     if not xs:
         return cal
     xbar = float(np.mean(np.concatenate(xs)))

@@ -290,6 +290,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
             f"sees specific force other than gravity in motion (|a| − g RMS {la['a_norm_rms_m_s2']:.3g} m/s² "
             f"against {la['a_norm_noise_m_s2']:.2g} from noise; {la['worst']} {la['ratio']:.0f}× its simulated "
             f"RMS) while |a| = g holds at rest: linear acceleration (thrust, a carrying hand), not a model error")
+    if (why_mc := magcurrent.untestable_after(adq.drop, an.first)) is not None:  # diagnose/magcurrent.py
+        blocked_keys |= set(magcurrent.KEYS)
+        untestable.append(why_mc)
     timing["adequacy"] = time.perf_counter() - t0
     # -- 3. forward selection ------------------------------------------------------------------------
     n = an.problem.n

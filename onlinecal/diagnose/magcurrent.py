@@ -108,6 +108,21 @@ def blocked_reason(designs: list[Any]) -> str | None:
     return None
 
 
+KEYS = tuple(f"mag_current:{b}" for b in BASES)
+
+
+def untestable_after(dropped: tuple[str, ...], scored: dict[str, Any]) -> str | None:
+    """After the adequacy check: the candidate reads the field's kinematics against the gyro (``km``); where the
+    baseline does not meet that invariant its rows are left out, and what remains (|m| = 1 and the dip, the dip
+    unreliable under thrust) cannot tell an interference from a wrong baseline: mag_current is untestable.
+    ``scored``: the candidates built (None when mag_current was not among them)."""
+    if not any(k in scored for k in KEYS) or not any(c.startswith("km") for c in dropped):
+        return None
+    return ("mag_current: needs the magnetometer's kinematic invariant (ṁ = m × ω against the gyro) to hold for "
+            "the baseline; this baseline does not meet it (see baseline_inadequate), so an interference cannot be "
+            "told from the baseline's own error")
+
+
 def columns(basis: str) -> Callable[[Any, Calibration], Array]:
     """Response rows (n, 3) of the three raw-frame coefficients k_j on ``basis``: raw change (x(t) − x̄) on mag
     axis j, mapped to the calibrated frame by the baseline's matrix (δm = M·e_j·(x − x̄)). Zeros where the

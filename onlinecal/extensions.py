@@ -16,6 +16,9 @@ signal chain, the ``sim/effects.py`` module docstring):
 
 ====================  ==========================================================================
 axis_sign             ``raw_axis ← −raw_axis`` (the flip is its own inverse)
+mag_current           ``raw_mag −= coeff·x``, x the log's ``current`` (A) or ``throttle`` (0…1) series
+                      (``ImuData.series``) interpolated onto the mag's stamps; raw frame, before the
+                      hard/soft iron (:func:`remove_mag_current`); refused on a log without that series
 scale_nonlinearity    exact inverse of ``y = x(1 + c|x|)``: ``x = sign(y)·2|y| / (1 + √(1 + 4c|y|))``
 temperature_bias      ``raw_axis −= coeff·(T − T0)``, T the log's temperature column (°C)
 time_offset           mag: re-stamped ``t_mag − seconds``; gyro/accel share the IMU clock, so the

@@ -14,7 +14,7 @@ notes/effects_spec.md). Each effect is a small frozen dataclass with
   1     lever_arm                               the accelerometer's input (specific force at r)
   --    paper model ``raw = M⁻¹·c + o``          (recomputed for a sensor whose input changed)
   2     temperature_bias, bias_drift,           additive, in raw units, at the sample's stamp
-        g_sensitivity
+        g_sensitivity, mag_current
   3     scale_nonlinearity                      ``raw ← raw·(1 + c·|raw|)`` on the whole raw value
   --    white noise, ADC quantisation           (``simulate``)
   4     axis_sign                               driver/mounting sign error, after the ADC
@@ -746,9 +746,10 @@ class MagCurrent(Effect):
     coeff·x (stage 2, additive at the sample's stamp). The export maps it to each firmware's frame (ArduPilot
     adds COMPASS_MOT after its soft iron, PX4 CAL_MAGn_xCOMP before; ``export._compassmot``).
     x comes from the vehicle trajectory's throttle as the motors deliver it (:func:`motor_throttle`, a 0.1-s
-    lag; :func:`battery_current` for the current), so the effect needs a vehicle profile (multirotor, fixedwing). Real vehicles: compassmot accepts interference up to 30 %
-    of the field at full throttle, 60 % is "bad" (ArduPilot compass-setup-advanced); a 40-A quad with the
-    compass on the frame near the power leads shows 0.1–0.3 field at full throttle, i.e. ~1e-3…8e-3 field per A.
+    lag; :func:`battery_current` for the current), so the effect needs a vehicle profile (multirotor,
+    fixedwing). Real vehicles: compassmot accepts interference up to 30 % of the field at full throttle, 60 %
+    is "bad" (ArduPilot compass-setup-advanced); a 40-A quad with the compass on the frame near the power leads
+    shows 0.1–0.3 field at full throttle, i.e. ~1e-3…4e-3 G per A in the 0.48-G field.
     On the command line coeff is 3 numbers separated by ``;`` (``mag_current:basis=current,coeff=2e-3;0;-3e-3``).
     """
 

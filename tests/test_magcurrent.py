@@ -93,10 +93,10 @@ def test_random_mag_current_sizes() -> None:
 # -- the series in the logs, and the inverse against the truth -----------------------------------------------
 
 # resolution of each format: .bin float32, .csv repr, .tlog SYS_STATUS cA and VFR_HUD whole percent
-TOL = {"bin": (1e-6, 1e-5), "csv": (1e-12, 1e-12), "tlog": (0.005 + 1e-9, 0.005 + 1e-9)}
+TOL = {"bin": (1e-6, 1e-5), "ulg": (1e-6, 1e-5), "csv": (1e-12, 1e-12), "tlog": (0.005 + 1e-9, 0.005 + 1e-9)}
 
 
-@pytest.mark.parametrize("ext", ["bin", "csv", "tlog"])
+@pytest.mark.parametrize("ext", ["bin", "csv", "tlog", "ulg"])
 def test_logs_carry_current_and_throttle(pair, tmp_path, ext) -> None:
     eff, s, _ = pair
     p = tmp_path / f"f.{ext}"
@@ -107,8 +107,8 @@ def test_logs_carry_current_and_throttle(pair, tmp_path, ext) -> None:
     for key, truth, tol in (("throttle", thr_true, TOL[ext][0]), ("current", battery_current(thr_true), TOL[ext][1])):
         ts, xs = back.series[key]
         assert np.allclose(ts, t_true, atol=1e-6)
-        assert np.allclose(xs, truth, rtol=0, atol=tol * max(1.0, float(np.abs(truth).max())) if ext == "bin"
-                           else tol)
+        assert np.allclose(xs, truth, rtol=0, atol=tol * max(1.0, float(np.abs(truth).max()))
+                           if ext in ("bin", "ulg") else tol)
 
 
 def test_correct_from_the_logged_series_removes_the_effect(pair, tmp_path) -> None:

@@ -260,3 +260,28 @@ def test_replay_nis_with_the_extension_is_no_worse() -> None:
         nis[name] = float(res.nis["mag"]["mean"])
     assert nis["with"] <= nis["without"], nis
     assert nis["with"] < 6.0, nis  # consistent: near its expectation 3 (the health verdict's bound for degraded)
+
+    # diagnose → export → the firmware: ArduPilot's correct_field (AP_Compass_Backend.cpp, orientation none:
+    # mag += OFS; mag = soft_iron·mag; mag += COMPASS_MOT·x), written here from the firmware source, turns the
+    # interfered flight into what it makes of the clean flight of the same seed (same noise draws)
+    from onlinecal.export import export_calibration
+
+    P = export_calibration(diag.calibration, "ardupilot", force=True).params
+    assert P["COMPASS_MOTCT"] == (2 if eff.basis == "current" else 1) and P.get("COMPASS_ORIENT", 0) == 0
+
+    def correct_field(raw_g: np.ndarray, x: np.ndarray, mot: bool) -> np.ndarray:
+        m = raw_g * 1e3 + np.array([P[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+        W = np.array([[P["COMPASS_DIA_X"], P["COMPASS_ODI_X"], P["COMPASS_ODI_Y"]],
+                      [P["COMPASS_ODI_X"], P["COMPASS_DIA_Y"], P["COMPASS_ODI_Z"]],
+                      [P["COMPASS_ODI_Y"], P["COMPASS_ODI_Z"], P["COMPASS_DIA_Z"]]])
+        m = m @ W.T
+        return m + x[:, None] * np.array([P[f"COMPASS_MOT_{a}"] for a in "XYZ"]) if mot else m
+
+    clean = simulate("multirotor", 1, duration=FLIGHT_S)
+    ts, xs = sim.data.series[eff.basis]
+    x = np.interp(sim.data.t_mag, ts, xs)
+    want = correct_field(clean.data.mag, x, False)
+    before = correct_field(sim.data.mag, x, False) - want
+    after = correct_field(sim.data.mag, x, True) - want
+    rms = lambda v: float(np.sqrt(np.mean(v**2)))  # noqa: E731
+    assert rms(after) < 0.2 * rms(before), (rms(after), rms(before))

@@ -342,7 +342,7 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     for f in findings:
         if f.significant and f.effect != "baseline_inadequate":
             exts.setdefault(f.effect, []).append(_extension(f, T0))
-    exts = {k: v[0] if len(v) == 1 else v for k, v in exts.items()}
+    exts = {k: v[0] if len(v) == 1 or k == "mag_current" else v for k, v in exts.items()}  # one basis: the best
     gbr = gyro_bias_rests(designs, cal, exts.get("g_sensitivity"))
     ext_cal = _honest_gyro_sigma(cal.replace(extensions=exts), gbr)
     if "mag_current" in exts and calibration is None:  # a batch on these logs: its hard iron holds k·x̄

@@ -144,7 +144,8 @@ def params(basis: str) -> Callable[[Array, Array, list[Any], Calibration], dict[
     data's x range and the interference at the largest x as a fraction of the field (the calibrated field's norm
     is 1: |M·k|·x_max)."""
     def f(beta: Array, cov: Array, ds: list[Any], cal: Calibration) -> dict[str, Any]:
-        sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        sd = np.maximum(np.sqrt(np.maximum(np.diag(cov), 0.0)), robust_sigma(ds, cal, basis))
+        sd = np.hypot(sd, SERIES_REL_SIGMA * float(np.linalg.norm(beta)))
         xs = [_x(d, basis) for d in ds if d.mhat is not None and basis in d.s.series]
         x = np.concatenate(xs) if xs else np.zeros(1)
         M = cal.mag.matrix if cal.mag is not None else np.eye(3)
@@ -153,6 +154,61 @@ def params(basis: str) -> Callable[[Array, Array, list[Any], Calibration], dict[
                 "x_range": [float(np.percentile(x, 5)), float(np.percentile(x, 95))],
                 "field_fraction_at_max": float(np.linalg.norm(M @ beta) * np.max(np.abs(x)))}
     return f
+
+
+MAG_ROWS = ("km_x", "km_y", "km_z", "m_norm")
+# Model uncertainty of the series itself, added to σ in quadrature as a share of |k|: a log samples the current
+# or throttle at ~10 Hz (ArduPilot BAT/CTUN), so where x changes within 0.1 s its timing is unknown and the
+# coefficient inherits the misfit. Measured on simulated flights with a 10-Hz series (benchmarks/
+# bench_magcurrent.py, 10 flights, 30 coefficients): errors up to 12 % of a component, RMS 2.1 σ (max 7.3 σ)
+# with the noise σ alone; 5 % of |k| brings every one of them within 3 σ.
+SERIES_REL_SIGMA = 0.05
+CLUSTER_S = 10.0  # s: time blocks of the cluster-robust covariance (the scoring's fold length)
+
+
+def robust_sigma(ds: list[Any], cal: Calibration, basis: str) -> Array:
+    """Cluster-robust σ (3,) of the coefficients (Liang & Zeger 1986; White 1980 with clusters): the fit on the
+    magnetometer's rows (m against the gyro, |m| = 1) with the baseline's nuisance partialled out
+    (Frisch–Waugh), rows whitened by their channel's robust σ, the covariance (X'X)⁻¹ (Σ_c X_c'r_c r_c'X_c)
+    (X'X)⁻¹ over CLUSTER_S-long time blocks. The model's own covariance assumes independent rows of the
+    channel's noise; the information here sits in the few rows where x changes, where a 10-Hz series' timing
+    (linear interpolation between its samples) leaves a misfit the noise σ does not cover — the robust form
+    widens σ by what the residuals of those rows actually show. Zeros when nothing can be fitted."""
+    from .regressors import SUBCHANNELS, nuisance
+    from .score import robust_sigma as channel_sigma
+
+    Xs, ys, cls = [], [], []
+    ids = [SUBCHANNELS.index(c) for c in MAG_ROWS]
+    for d in ds:
+        if d.mhat is None or basis not in _bases([d]):
+            continue
+        rows = np.isin(d.ch, ids)
+        if rows.sum() < 20:
+            continue
+        N = nuisance(d)[rows]
+        X = np.nan_to_num(columns(basis)(d, cal)[rows])
+        y = d.y[rows]
+        r0 = y - N @ np.linalg.lstsq(N, y, rcond=None)[0]
+        w = 1.0 / channel_sigma(r0, d.ch[rows], len(SUBCHANNELS))[d.ch[rows]]
+        Nw, Xw, yw = N * w[:, None], X * w[:, None], y * w
+        P = np.linalg.lstsq(Nw, np.column_stack([Xw, yw]), rcond=None)[0]
+        R = np.column_stack([Xw, yw]) - Nw @ P
+        Xs.append(R[:, :3])
+        ys.append(R[:, 3])
+        cls.append(np.floor(d.t[rows] / CLUSTER_S).astype(int) * 1000 + int(d.sid))
+    if not Xs:
+        return np.zeros(3)
+    X, y, c = np.concatenate(Xs), np.concatenate(ys), np.concatenate(cls)
+    A = X.T @ X
+    if np.linalg.cond(A) > 1e12:
+        return np.zeros(3)
+    Ai = np.linalg.inv(A)
+    r = y - X @ (Ai @ (X.T @ y))
+    _, inv = np.unique(c, return_inverse=True)
+    S = np.zeros((inv.max() + 1, 3))
+    np.add.at(S, inv, X * r[:, None])
+    out: Array = np.sqrt(np.maximum(np.diag(Ai @ (S.T @ S) @ Ai), 0.0))
+    return out
 
 
 def candidates() -> list[Any]:

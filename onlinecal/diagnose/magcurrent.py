@@ -160,9 +160,9 @@ MAG_ROWS = ("km_x", "km_y", "km_z", "m_norm")
 # Model uncertainty of the series itself, added to σ in quadrature as a share of |k|: a log samples the current
 # or throttle at ~10 Hz (ArduPilot BAT/CTUN), so where x changes within 0.1 s its timing is unknown and the
 # coefficient inherits the misfit. Measured on simulated flights with a 10-Hz series (benchmarks/
-# bench_magcurrent.py, 10 flights, 30 coefficients): errors up to 12 % of a component, RMS 2.1 σ (max 7.3 σ)
-# with the noise σ alone; 5 % of |k| brings every one of them within 3 σ.
-SERIES_REL_SIGMA = 0.05
+# bench_magcurrent.py, 10 flights, 30 coefficients): the errors are 1.1 % of |k| RMS (max 2.7 %; up to 12 % of
+# a small component), RMS 2.1 σ (max 7.3 σ) with the noise σ alone; the share is that measured RMS.
+SERIES_REL_SIGMA = 0.01
 CLUSTER_S = 10.0  # s: time blocks of the cluster-robust covariance (the scoring's fold length)
 
 

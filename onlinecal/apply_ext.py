@@ -4,7 +4,8 @@ each effect, Zhang et al. 2014 eq. 1 extended in front of the paper's ``matrix @
 
 * replay (:func:`prepare`): each whole log is corrected (time offsets resampled, ω̇ from the whole log);
 * run (:class:`BlockCorrector`): live blocks arrive ~0.25 s at a time and cannot be resampled cheaply, so
-  only the pointwise extensions are applied per block — temperature_bias, g_sensitivity,
+  only the pointwise extensions are applied per block (mag_current is not: the link carries no current or
+  throttle series; it is named in the notes, :data:`NOT_LIVE`) — temperature_bias, g_sensitivity,
   scale_nonlinearity, axis_sign, lever_arm (its ω̇ is a Savitzky–Golay derivative within the block, less
   accurate within 0.05 s of the block's ends) and a magnetometer time_offset (a re-stamp); a gyro or
   accelerometer time_offset is refused (:func:`check_live`).
@@ -31,6 +32,11 @@ NOT_APPLIED = {
     "saturation": "saturation is not corrected: the UKF's rail detector skips clipped samples",
 }
 assert tuple(NOT_APPLIED) == NOT_REMOVABLE
+# extensions that need a series a live link does not carry: reported, and the live blocks left as they are
+NOT_LIVE = {
+    "mag_current": "mag_current is not applied to live blocks: the link carries no battery current or throttle "
+                   "series to remove the interference with (replay a log with BAT/CTUN to apply it)",
+}
 
 
 def _ext(cal: Calibration) -> dict[str, Any]:
@@ -47,7 +53,8 @@ def prepare(logs: list[ImuData], cal: Calibration | None) -> tuple[list[ImuData]
 
     Returns the corrected logs (the inputs unchanged when there are no extensions) and one note per
     applied or skipped extension. Raises ValueError naming the log and the problem (e.g. a
-    temperature_bias extension on a log without a temperature column).
+    temperature_bias extension on a log without a temperature column, a mag_current extension on a log
+    without its current or throttle series: ``remove_mag_current`` needs x at every magnetometer sample).
     """
     if cal is None or not cal.extensions:
         return list(logs), []
@@ -77,8 +84,8 @@ def check_live(cal: Calibration | None) -> list[str]:
             raise ValueError(f"the {e['sensor']} time_offset extension ({e['seconds']:g} s) cannot be applied to "
                              "live blocks (it needs resampling over the whole log); use replay on a recorded log, "
                              "or an --init calibration without it")
-    notes = [NOT_APPLIED[n] for n in ext if n in NOT_APPLIED]
-    todo = _applied(ext)
+    notes = [NOT_APPLIED[n] for n in ext if n in NOT_APPLIED] + [NOT_LIVE[n] for n in ext if n in NOT_LIVE]
+    todo = [n for n in _applied(ext) if n not in NOT_LIVE]
     if todo:
         notes.insert(0, f"extensions applied per live block: {', '.join(todo)}"
                      + (" (lever_arm: ω̇ within each block, approximate at its ends)" if "lever_arm" in ext else ""))
@@ -96,7 +103,7 @@ class BlockCorrector:
     def __init__(self, cal: Calibration) -> None:
         check_live(cal)
         self.cal = cal
-        self.ext = dict(cal.extensions)
+        self.ext = {k: v for k, v in cal.extensions.items() if k not in NOT_LIVE}
         self._no_temp = {k: v for k, v in self.ext.items() if k != "temperature_bias"}
         self._mag_only = {k: v for k, v in self.ext.items() if k == "time_offset"}
         self.skipped_temperature = 0
@@ -119,6 +126,6 @@ def live_transform(cal: Calibration | None) -> BlockCorrector | None:
     """The per-block correction ``run_live(..., transform=...)`` applies for ``cal``'s extensions, or None when
     none of them changes the data. Raises ValueError as :func:`check_live`."""
     check_live(cal)
-    if cal is None or not _applied(validate_extensions(_ext(cal))):
+    if cal is None or not [n for n in _applied(validate_extensions(_ext(cal))) if n not in NOT_LIVE]:
         return None
     return BlockCorrector(cal)

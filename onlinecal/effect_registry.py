@@ -43,6 +43,7 @@ class EffectInfo:
     live: bool = False
     diagnosed: bool = True
     meaning: str = ""
+    vehicle: bool = False  # needs a vehicle's current or throttle series (a flight profile, a flight log)
 
 
 REGISTRY: dict[str, EffectInfo] = {e.name: e for e in (
@@ -64,9 +65,16 @@ REGISTRY: dict[str, EffectInfo] = {e.name: e for e in (
                meaning="accelerometer away from the centre of rotation (centripetal and tangential terms)"),
     EffectInfo("axis_sign", ("gyro", "accel", "mag"), ("sensor", "axis"), "AxisSign", "pointwise", live=True,
                meaning="an axis whose sign is inverted against the other sensors (mounting or driver error)"),
+    EffectInfo("mag_current", ("mag",), ("coeff", "basis"), "MagCurrent", "pointwise", vehicle=True,
+               meaning="a magnetometer offset proportional to the motor current or the throttle (compassmot)"),
 )}
 
-EFFECTS: tuple[str, ...] = tuple(REGISTRY)
+# EFFECTS: the effects any session can carry (the paper's platform included); VEHICLE_EFFECTS need a
+# vehicle's current or throttle series (simulate --profile multirotor|fixedwing, a flight log with BAT/CTUN);
+# ALL_EFFECTS: the whole vocabulary (simulate --effect, extensions, diagnose's findings)
+EFFECTS: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if not e.vehicle)
+VEHICLE_EFFECTS: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.vehicle)
+ALL_EFFECTS: tuple[str, ...] = EFFECTS + VEHICLE_EFFECTS
 SENSORS_OF: dict[str, tuple[str, ...]] = {n: e.sensors for n, e in REGISTRY.items()}
 REQUIRED: dict[str, tuple[str, ...]] = {n: e.required for n, e in REGISTRY.items()}
 # (effect, sensor) → the UKF extension state that estimates it
@@ -86,8 +94,10 @@ EFFECT_KEYS: dict[str, dict[str, Any]] = {
     "scale_nonlinearity": {"sensor": "gyro", "axis": None, "coeff": 0.002},
     "lever_arm": {"x": 0.05, "y": 0.03, "z": -0.02},
     "axis_sign": {"sensor": "gyro", "axis": "z"},
+    # raw = true + coeff·x: coeff (3,) raw magnetometer unit per A (basis current) or at full throttle
+    "mag_current": {"basis": "current", "coeff": (2e-3, -1e-3, 3e-3)},
 }
-assert tuple(EFFECT_KEYS) == EFFECTS
+assert tuple(EFFECT_KEYS) == ALL_EFFECTS
 
 
 def lever_arm_acceleration(omega: Array, omega_dot: Array, r: Array) -> Array:

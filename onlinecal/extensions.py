@@ -16,6 +16,9 @@ signal chain, the ``sim/effects.py`` module docstring):
 
 ====================  ==========================================================================
 axis_sign             ``raw_axis ← −raw_axis`` (the flip is its own inverse)
+mag_current           ``raw_mag −= coeff·x``, x the log's ``current`` (A) or ``throttle`` (0…1) series
+                      (``ImuData.series``) interpolated onto the mag's stamps; raw frame, before the
+                      hard/soft iron (:func:`remove_mag_current`); refused on a log without that series
 scale_nonlinearity    exact inverse of ``y = x(1 + c|x|)``: ``x = sign(y)·2|y| / (1 + √(1 + 4c|y|))``
 temperature_bias      ``raw_axis −= coeff·(T − T0)``, T the log's temperature column (°C)
 time_offset           mag: re-stamped ``t_mag − seconds``; gyro/accel share the IMU clock, so the
@@ -49,7 +52,7 @@ from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 from scipy.signal import savgol_filter
 
-from .effect_registry import AXES, EFFECT_KEYS, EFFECTS, REQUIRED, SENSORS_OF, lever_arm_acceleration
+from .effect_registry import ALL_EFFECTS, AXES, EFFECT_KEYS, EFFECTS, REQUIRED, SENSORS_OF, lever_arm_acceleration
 from .io.base import ImuData
 from .model import Calibration
 
@@ -143,11 +146,11 @@ def validate_extensions(extensions: dict[str, Any] | None) -> dict[str, list[dic
         raise ValueError(f"extensions must be an object, got {type(extensions).__name__}")
     out: dict[str, list[dict[str, Any]]] = {}
     for name, v in extensions.items():
-        if name == "mag_current":  # not a simulator effect: a compassmot result, carried for the export
+        if name == "mag_current":  # keys of its own (coeff a list of 3, basis, σ, compass instance)
             out[name] = [_mag_current_entry(d) for d in (v if isinstance(v, list) else [v])]
             continue
         if name not in EXTENSION_KEYS:
-            raise ValueError(f"unknown extension {name!r}; known: {', '.join(EFFECTS)}")
+            raise ValueError(f"unknown extension {name!r}; known: {', '.join(ALL_EFFECTS)}")
         items = v if isinstance(v, list) else [v]
         out[name] = [_entry(name, d) for d in items]
     return out
@@ -158,7 +161,8 @@ def extensions_from_effects(effects: list[dict[str, Any]]) -> dict[str, Any]:
     temperature_bias gets T0 = 25 °C, the simulator's reference temperature."""
     out: dict[str, Any] = {}
     for d in effects:
-        e = {k: v for k, v in d.items() if k in EXTENSION_KEYS[d["effect"]]}
+        keys = ("basis", "coeff") if d["effect"] == "mag_current" else EXTENSION_KEYS[d["effect"]]
+        e = {k: v for k, v in d.items() if k in keys}
         if d["effect"] == "temperature_bias":
             e["T0"] = 25.0
         out.setdefault(d["effect"], []).append(e)
@@ -257,8 +261,10 @@ def correct(data: ImuData, extensions: dict[str, Any] | None, calibration: Calib
             raw["gyro"] -= f @ e["G"].T
         if r is not None:  # second pass: the lever arm with the g-corrected gyro
             raw["accel"] = acc0 - _lever(data.t_imu, raw["gyro"], calibration, r)
+    # the log's boundaries, parameters and series (current, throttle) travel with the corrected data
     return ImuData(np.array(data.t_imu, float), raw["gyro"], raw["accel"], np.array(data.temp, float), t_mag,
-                   raw["mag"], data.source, list(data.warnings))
+                   raw["mag"], data.source, list(data.warnings), list(data.boundaries), dict(data.params),
+                   dict(data.series))
 
 
 def process_noise(extensions: dict[str, Any] | None) -> dict[str, Array]:
@@ -290,9 +296,9 @@ def gsens_matrix(entry: dict[str, Any]) -> Array:
 
 # -- mag_current: magnetometer interference from motor current or throttle (compassmot) ---------------------
 # The effect: raw_mag += k·x, with x the battery current (A) or the throttle (0…1) at the mag's sample instants
-# and k (3,) in the magnetometer's raw unit per A (or at full throttle). Its estimation needs a log that carries
-# current or throttle beside the IMU, which ImuData does not hold yet (see docs/effects.md); the inverse and the
-# autopilot parameters are here so that the export can carry a coefficient found elsewhere (a tethered run).
+# and k (3,) in the magnetometer's raw unit per A (or at full throttle), in the raw frame before the hard/soft
+# iron (the simulator's MagCurrent, diagnose's candidate in diagnose/magcurrent.py, the export all use this
+# one convention). The series come from the log (ImuData.series: DataFlash BAT/CURR, CTUN/RCOU).
 MAG_CURRENT_BASES = ("throttle", "current")
 
 

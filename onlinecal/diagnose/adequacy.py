@@ -29,6 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .analysis import Analysis
+from .magcurrent import REQUIREMENT as MAG_CURRENT_REQUIREMENT
+from .magcurrent import blocked_reason as mag_current_blocked
 from .regressors import SUBCHANNELS, Design
 from .score import solve
 
@@ -65,6 +67,7 @@ REQUIRES: dict[str, str] = {
     "scale_nonlinearity": "≥ 50 Hz, ≥ 10 s of rotation faster than 0.5 rad/s",
     "lever_arm": "≥ 50 Hz, ≥ 10 s of rotation faster than 0.5 rad/s, gravity-dominated specific force",
     "time_offset": "≥ 50 Hz, ≥ 10 s of rotation faster than 0.5 rad/s",
+    "mag_current": "≥ 10 Hz, " + MAG_CURRENT_REQUIREMENT,  # diagnose/magcurrent.py
 }
 
 
@@ -126,6 +129,8 @@ def coverage(designs: list[Design]) -> Coverage:
             why.append(f"{rot:.0f} s of rotation faster than 0.5 rad/s")
         if why:
             b[eff] = f"{eff}: needs {REQUIRES[eff]}; {here}: {', '.join(why)}"
+    if "mag_current" not in b and (why_mc := mag_current_blocked(designs)):
+        b["mag_current"] = why_mc
     return c
 
 

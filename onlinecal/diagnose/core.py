@@ -33,6 +33,7 @@ from ..batch.segment import noise_floors, segment
 from ..io.base import ImuData
 from ..model import Calibration
 from ..specs import G0
+from . import magcurrent
 from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, MIN_RATE_HZ, REQUIRES, Adequacy, assess, coverage
 from .analysis import Analysis, analyse, channel_mask, one_blas_thread, restrict
 from .detectors import Handedness, Saturated, candidates, find_axis_sign, find_saturation
@@ -90,6 +91,7 @@ EVIDENCE = {
                           "what a linear scale absorbs",
     "lever_arm": "accelerometer residuals follow ω̇×r + ω×(ω×r) during turns (|f| ≠ g while rotating)",
     "time_offset": "the {sensor} lags the other sensors: the kinematic residual follows −δ·v̇ during turns",
+    "mag_current": magcurrent.EVIDENCE,
 }
 
 
@@ -132,6 +134,8 @@ def _extension(f: Finding, T0: float | None) -> dict[str, Any]:
         e = {"sensor": f.sensor, "limit": p["limit"]}
     elif f.effect == "axis_sign":
         e = {"sensor": f.sensor, "axis": f.axis}
+    elif f.effect == "mag_current":
+        e = magcurrent.extension(p)
     return e
 
 
@@ -286,6 +290,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
             f"sees specific force other than gravity in motion (|a| − g RMS {la['a_norm_rms_m_s2']:.3g} m/s² "
             f"against {la['a_norm_noise_m_s2']:.2g} from noise; {la['worst']} {la['ratio']:.0f}× its simulated "
             f"RMS) while |a| = g holds at rest: linear acceleration (thrust, a carrying hand), not a model error")
+    if (why_mc := magcurrent.untestable_after(adq.drop, an.first)) is not None:  # diagnose/magcurrent.py
+        blocked_keys |= set(magcurrent.KEYS)
+        untestable.append(why_mc)
     timing["adequacy"] = time.perf_counter() - t0
     # -- 3. forward selection ------------------------------------------------------------------------
     n = an.problem.n
@@ -335,9 +342,11 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     for f in findings:
         if f.significant and f.effect != "baseline_inadequate":
             exts.setdefault(f.effect, []).append(_extension(f, T0))
-    exts = {k: v[0] if len(v) == 1 else v for k, v in exts.items()}
+    exts = {k: v[0] if len(v) == 1 or k == "mag_current" else v for k, v in exts.items()}  # one basis: the best
     gbr = gyro_bias_rests(designs, cal, exts.get("g_sensitivity"))
     ext_cal = _honest_gyro_sigma(cal.replace(extensions=exts), gbr)
+    if "mag_current" in exts and calibration is None:  # a batch on these logs: its hard iron holds k·x̄
+        ext_cal = magcurrent.interference_free_bias(ext_cal, logs, exts["mag_current"])
     base_beta, _ = an.problem.fit(["nuisance"])
     r_meas = an.problem.residual(["nuisance"], base_beta)
     nb, _ = null.problem.fit(["nuisance"])
@@ -384,7 +393,7 @@ def _ukf_stage(diag: Diagnosis, logs: list[ImuData], cal: Calibration, exts: dic
     diag.baseline["ukf"] = before
     if "error" in before or not any(k not in NOT_CORRECTED for k in exts):
         return
-    after = run_ukf(logs, cal, exts)
+    after = run_ukf(logs, cal.replace(mag=diag.calibration.mag) if "mag_current" in exts else cal, exts)
     diag.ukf_extended = after
     if "error" in after:
         return

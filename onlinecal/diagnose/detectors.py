@@ -237,6 +237,9 @@ def candidates(has_mag: bool, has_temp: bool) -> list[Candidate]:
         Candidate("lever_arm", "accel", False, lever_cols, lever_params),
         Candidate("time_offset", "all", False, offset_cols, offset_params),
     ]
+    if has_mag:  # mag_current (diagnose/magcurrent.py); coverage blocks it without a varying current/throttle
+        from .magcurrent import candidates as mag_current_candidates
+        out += mag_current_candidates()
     if has_temp:
         out = [Candidate("temperature_bias", "gyro", False, temp_cols("gyro"), per_axis_params("coeff")),
                Candidate("temperature_bias", "accel", False, temp_cols("accel"), per_axis_params("coeff"))] + out

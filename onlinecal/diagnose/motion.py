@@ -17,6 +17,7 @@ from ..batch.gyro import rodrigues
 from ..batch.segment import Interval
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
+from .magcurrent import series_on_clock
 
 Array = NDArray[np.float64]
 
@@ -43,6 +44,7 @@ class Session:
     rate: float
     restamped: bool = False
     notes: list[str] = field(default_factory=list)
+    series: dict[str, Array] = field(default_factory=dict)  # current (A) / throttle on the clock t (magcurrent)
 
     @property
     def n(self) -> int:
@@ -110,7 +112,8 @@ def prepare(data: ImuData, cal: Calibration, rests: list[Interval]) -> Session:
         raw_m[bad] = np.nan
     rate = (t.size - 1) / (t[-1] - t[0]) if t.size > 1 else float("nan")
     return Session(data.source, t, np.asarray(data.gyro, float), np.asarray(data.acc, float), raw_m,
-                   np.asarray(data.temp, float), w, a, m, list(rests), float(rate), restamped, notes)
+                   np.asarray(data.temp, float), w, a, m, list(rests), float(rate), restamped, notes,
+                   series_on_clock(data, t, restamped))
 
 
 def smooth(x: Array, width: int) -> Array:

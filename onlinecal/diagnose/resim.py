@@ -56,4 +56,5 @@ def resimulate(s: Session, clean: dict[str, Array], cal: Calibration, data: ImuD
         sm = noise_sigma(np.asarray(data.mag, float))
         mag = raw_m + rng.standard_normal(raw_m.shape) * sm
         t_mag = tm
-    return ImuData(s.t.copy(), raw_g, raw_a, s.temp.copy(), t_mag, mag, f"resim:{s.source}")
+    return ImuData(s.t.copy(), raw_g, raw_a, s.temp.copy(), t_mag, mag, f"resim:{s.source}",
+                   series=dict(data.series))  # the same current/throttle: the null of the mag_current candidate

@@ -4,7 +4,9 @@ Columns (matched by name, any order, header line required)::
 
     time_s [s], gyro_x..z [rad/s], acc_x..z [m/s²], mag_x..z [sensor unit], temp_c [°C]
 
-``mag_x..z`` (all three) and ``temp_c`` may be absent. Other columns are ignored. A row carries an IMU
+``mag_x..z`` (all three) and ``temp_c`` may be absent; optional ``current_a`` [A] and ``throttle`` [0..1]
+(``ImuData.series``; rows of their own: the time and the value, the other cells empty). Other columns are
+ignored. A row carries an IMU
 sample (gyro+acc, temperature optional), a mag sample, or both; cells of a sensor not sampled at that
 row are empty. Errors name ``line N`` with N the line number in the file (the header is line 1).
 
@@ -35,6 +37,9 @@ ACC = ("acc_x", "acc_y", "acc_z")
 MAG = ("mag_x", "mag_y", "mag_z")
 TEMP = "temp_c"
 COLUMNS = (TIME, *GYRO, *ACC, *MAG, TEMP)
+# optional series a vehicle's log carries (ImuData.series): battery current A, throttle 0..1; a row may hold
+# only the time and these (written so by write_csv when the data has them)
+SERIES_COLUMNS = {"current_a": "current", "throttle": "throttle"}
 
 _HEADER_LIMIT = 1 << 16  # a header longer than this is not a header (e.g. a binary file)
 _LINE_LIMIT = 1 << 12  # characters: a data row of 11 numbers is ~250; longer is binary data
@@ -83,7 +88,7 @@ class CsvReader:
         names = [c.strip().lower() for c in line.rstrip("\r\n").split(",")]
         col: dict[str, int] = {}
         for i, name in enumerate(names):
-            if name in COLUMNS:
+            if name in COLUMNS or name in SERIES_COLUMNS:
                 if name in col:
                     raise LogError(self.path, f"column {name!r} appears twice in the header", "line 1")
                 col[name] = i
@@ -123,6 +128,7 @@ class CsvReader:
         # Lines hold IMU or mag samples, so read a bit more than one block's worth per chunk.
         chunk = int(min(max(2 * max_samples, 4096), 1 << 16))
         empty_rows = 0
+        self._series: dict[str, tuple[list[Array], list[Array]]] = {}
         self._bad = 0
         self._bad_first: tuple[int, str] | None = None
         self._rows = 0
@@ -156,6 +162,8 @@ class CsvReader:
                       f"{_LINE_LIMIT} characters) from there on, e.g. a pre-allocated logger file's padding")
         asm.add(*filt.flush())
         filt.finish()
+        asm.series = {SERIES_COLUMNS[k]: (np.concatenate(ts), np.concatenate(xs))
+                      for k, (ts, xs) in self._series.items()}
         yield from asm.pop(final=True)
 
     @staticmethod
@@ -265,6 +273,14 @@ class CsvReader:
             mag_rows = ~np.all(empty[:, im], axis=1)
             mag = (t[mag_rows], vals[mag_rows][:, im] * sc["mag"])
             any_rows = imu_rows | mag_rows
+        for name in SERIES_COLUMNS:
+            if name in col:
+                has = ~empty[:, col[name]] & np.isfinite(vals[:, col[name]]) & np.isfinite(t)
+                if has.any():
+                    acc = self._series.setdefault(name, ([], []))
+                    acc[0].append(t[has])
+                    acc[1].append(vals[has, col[name]])
+                any_rows = any_rows | has
         return imu, mag, int(np.count_nonzero(~any_rows))
 
 
@@ -301,24 +317,33 @@ def _parse_fast(rows: list[str], ncol: int) -> tuple[Array, np.ndarray] | None:
 
 def write_csv(path: str | Path, data: ImuData) -> None:
     """Write ``data`` in the flat schema: IMU and mag rows merged in time order (IMU first on ties),
-    empty cells for the sensor not sampled, floats written with repr (shortest exact round trip)."""
+    empty cells for the sensor not sampled, floats written with repr (shortest exact round trip). A
+    ``current``/``throttle`` series (``data.series``) adds a ``current_a``/``throttle`` column, its samples on
+    rows of their own (time and that value only), merged in time order after the sensors' rows."""
     n, m = data.n_imu, data.n_mag
-    t = np.concatenate([data.t_imu, data.t_mag])
+    extra = [(c, data.series[k]) for c, k in SERIES_COLUMNS.items() if k in data.series and data.series[k][0].size]
+    cols = COLUMNS + tuple(c for c, _ in extra)
+    t = np.concatenate([data.t_imu, data.t_mag] + [np.asarray(s[0], float) for _, s in extra])
+    kind = np.concatenate([np.zeros(n, int), np.ones(m, int)] + [np.full(s[0].size, 2 + j)
+                                                                 for j, (_, s) in enumerate(extra)])
+    at = np.concatenate([np.arange(n), np.arange(m)] + [np.arange(s[0].size) for _, s in extra])
     order = np.argsort(t, kind="stable")
     with open(path, "w", encoding="utf-8", newline="\n") as f:
-        f.write(",".join(COLUMNS) + "\n")
+        f.write(",".join(cols) + "\n")
         step = 1 << 15
-        for s in range(0, n + m, step):
+        for s in range(0, order.size, step):
             idx = order[s:s + step]
-            rows = np.full((idx.size, len(COLUMNS)), np.nan)
+            rows = np.full((idx.size, len(cols)), np.nan)
             rows[:, 0] = t[idx]
-            is_imu = idx < n
-            ii = idx[is_imu]
-            rows[is_imu, 1:4] = data.gyro[ii]
-            rows[is_imu, 4:7] = data.acc[ii]
-            rows[is_imu, 10] = data.temp[ii]
-            im = idx[~is_imu] - n
-            rows[~is_imu, 7:10] = data.mag[im]
+            k, i = kind[idx], at[idx]
+            is_imu, is_mag = k == 0, k == 1
+            rows[is_imu, 1:4] = data.gyro[i[is_imu]]
+            rows[is_imu, 4:7] = data.acc[i[is_imu]]
+            rows[is_imu, 10] = data.temp[i[is_imu]]
+            rows[is_mag, 7:10] = data.mag[i[is_mag]]
+            for j, (_, ser) in enumerate(extra):
+                sel = k == 2 + j
+                rows[sel, len(COLUMNS) + j] = np.asarray(ser[1], float)[i[sel]]
             f.write("".join(",".join(_cell(v) for v in r) + "\n" for r in rows.tolist()))
 
 

@@ -45,6 +45,10 @@ MAG_ID = 101
 FMT_FORMAT = ("FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
 IMU_FORMAT = ("IMU", "QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz")
 MAG_FORMAT = ("MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S")
+# the series a vehicle's log carries (ImuData.series "current" A, "throttle" 0..1), fields as ArduPilot names them
+BAT_ID, CTUN_ID = 102, 103
+BAT_FORMAT = ("BAT", "QBfffff", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot")
+CTUN_FORMAT = ("CTUN", "Qfff", "TimeUS,ThI,ThO,ThH")
 _NP = {"Q": "<u8", "q": "<i8", "B": "u1", "b": "i1", "M": "u1", "f": "<f4", "d": "<f8", "I": "<u4", "i": "<i4",
        "H": "<u2", "h": "<i2", "n": "S4", "N": "S16", "Z": "S64"}  # DataFlash format characters
 _IMU_FIELDS = ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ")
@@ -321,7 +325,8 @@ def _fmt_record(msg_id: int, name: str, fmt: str, columns: str) -> bytes:
 def write_dataflash(path: str | Path, data: ImuData) -> None:
     """Write ``data`` as a minimal ArduPilot DataFlash log: FMT records for FMT, IMU and MAG, then IMU
     (instance 0; gyro rad/s, acc m/s², T °C as float32) and MAG (instance 0; int16 milligauss, rounded
-    and clipped) records merged in time order. TimeUS = round(t µs); times must be ≥ 0."""
+    and clipped) records merged in time order. TimeUS = round(t µs); times must be ≥ 0. ``data.series``
+    ``current`` (A) and ``throttle`` (0..1), where present, are written as BAT (Inst 0, Curr) and CTUN (ThO)."""
     for t in (data.t_imu, data.t_mag):
         if t.size and (not np.all(np.isfinite(t)) or t.min() < 0):
             raise ValueError("write_dataflash needs finite, non-negative times")
@@ -345,20 +350,35 @@ def write_dataflash(path: str | Path, data: ImuData) -> None:
         if mq is not None:
             mag[f"Mag{c}"] = mq[:, k]
     mag["Health"] = 1
-    # Merge by time (IMU first on ties): scatter both record arrays into one byte buffer.
-    t = np.concatenate([imu["TimeUS"], mag["TimeUS"]])
+    kinds = [(IMU_ID, IMU_FORMAT, imu), (MAG_ID, MAG_FORMAT, mag)]
+    # the series a flight log carries: BAT Curr (A, instance 0), CTUN ThO (0..1)
+    for key, mid, fmt, col in (("current", BAT_ID, BAT_FORMAT, "Curr"), ("throttle", CTUN_ID, CTUN_FORMAT, "ThO")):
+        if key in data.series and data.series[key][0].size:
+            ts, xs = (np.asarray(v, float) for v in data.series[key])
+            if not np.all(np.isfinite(ts)) or ts.min() < 0:
+                raise ValueError(f"write_dataflash needs finite, non-negative {key} times")
+            rec = np.zeros(ts.size, _record_dtype(fmt[1], fmt[2]))
+            rec["h1"], rec["h2"], rec["id"] = HEAD[0], HEAD[1], mid
+            rec["TimeUS"] = np.rint(ts * 1e6).astype(np.uint64)
+            rec[col] = xs
+            kinds.append((mid, fmt, rec))
+    # Merge by time (IMU first on ties, then MAG, then the series): scatter the record arrays into one buffer.
+    t = np.concatenate([r["TimeUS"] for _, _, r in kinds])
+    sizes = np.concatenate([np.full(r.size, r.dtype.itemsize) for _, _, r in kinds])
     order = np.argsort(t, kind="stable")
-    size = np.where(order < data.n_imu, di.itemsize, dm.itemsize)
-    start = np.concatenate([[0], np.cumsum(size)[:-1]]).astype(np.int64)
+    start = np.concatenate([[0], np.cumsum(sizes[order])[:-1]]).astype(np.int64)
     pos = np.empty_like(start)
     pos[order] = start
-    body = np.zeros(int(size.sum()), np.uint8)
-    for recs, p in ((imu, pos[: data.n_imu]), (mag, pos[data.n_imu:])):
+    body = np.zeros(int(sizes.sum()), np.uint8)
+    at = 0
+    for _, _, recs in kinds:
+        p = pos[at:at + recs.size]
+        at += recs.size
         if recs.size:
             raw = recs.view(np.uint8).reshape(recs.size, recs.dtype.itemsize)
             body[p[:, None] + np.arange(recs.dtype.itemsize)] = raw
     with open(path, "wb") as f:
         f.write(_fmt_record(FMT_ID, *FMT_FORMAT))
-        f.write(_fmt_record(IMU_ID, *IMU_FORMAT))
-        f.write(_fmt_record(MAG_ID, *MAG_FORMAT))
+        for mid, fmt, _ in kinds:
+            f.write(_fmt_record(mid, *fmt))
         f.write(body.tobytes())

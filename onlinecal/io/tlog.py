@@ -45,6 +45,11 @@ _DECIDE_AFTER = 1000  # IMU messages looked at before settling for a source othe
 _TLOG_EPOCH_US = 1_700_000_000_000_000  # wall-clock base of written tlog timestamps (2023-11-14)
 _INT16 = (-32768, 32767)
 _NOT_MESSAGES = ("MAV", "HOME", "BAD_DATA")  # entries of pymavlink's ``messages`` that are not a message read
+# ImuData.series from the vehicle's status messages: SYS_STATUS current_battery (cA, −1 = not measured) → current A,
+# VFR_HUD throttle (%) → throttle 0..1. They carry no boot time: their tlog (receive) stamp is put on the IMU's
+# boot clock by the median offset between the chosen IMU source's tlog stamps and its own times.
+_SERIES_MESSAGES = ("SYS_STATUS", "VFR_HUD")
+_OFFSET_EVERY = 64  # IMU messages between two samples of the tlog-stamp − boot-time offset
 
 
 class TlogReader:
@@ -76,11 +81,13 @@ class TlogReader:
         pending: list[tuple[tuple, Any]] = []  # IMU messages before the source is chosen
         chosen: tuple | None = None
         n_msg = n_bad = 0
+        series_raw: list[tuple[int, str, float, float]] = []  # (system, message, tlog stamp s, value)
+        offsets: dict[tuple, list[float]] = {}  # IMU source key → tlog stamp − boot time samples (s)
         flush_every = max(1, min(max_samples, 1 << 14))
         try:
             while True:
                 try:
-                    msg = conn.recv_match(type=[*IMU_MESSAGES, "BAD_DATA"], blocking=False)
+                    msg = conn.recv_match(type=[*IMU_MESSAGES, *_SERIES_MESSAGES, "BAD_DATA"], blocking=False)
                 except Exception as e:
                     raise LogError(self.path, f"pymavlink failed: {type(e).__name__}: {e}",
                                    f"byte {_tell(conn)}, message {n_msg + 1}") from None
@@ -91,7 +98,15 @@ class TlogReader:
                 if typ == "BAD_DATA":
                     n_bad += 1
                     continue
+                if typ in _SERIES_MESSAGES:
+                    v = (msg.current_battery / 100.0 if msg.current_battery >= 0 else float("nan")) \
+                        if typ == "SYS_STATUS" else msg.throttle / 100.0
+                    series_raw.append((msg.get_srcSystem(), typ, float(getattr(msg, "_timestamp", 0.0)), v))
+                    continue
                 key = _source_key(msg, typ)
+                if n_msg % _OFFSET_EVERY == 1 and hasattr(msg, "_timestamp"):
+                    boot = msg.time_boot_ms * 1e-3 if typ.startswith("SCALED") else msg.time_usec * 1e-6
+                    offsets.setdefault(key, []).append(float(msg._timestamp) - boot)
                 if key not in seen:
                     seen[key] = _describe(key)
                 if chosen is None:
@@ -137,6 +152,7 @@ class TlogReader:
                       f"(no compass reading); not used as mag samples")
         if n_bad:
             filt.note(f"skipped {n_bad} stretches of bytes pymavlink could not decode (bad CRC or garbage)")
+        asm.series = _series(series_raw, offsets.get(chosen, []), chosen[0])
         asm.add(*filt.flush())
         filt.finish()
         yield from asm.pop(final=True)
@@ -229,6 +245,20 @@ def _has_mavlink(head: bytes) -> bool:
     return False
 
 
+def _series(raw: list[tuple[int, str, float, float]], offsets: list[float], system: int
+            ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``current``/``throttle`` series of the IMU's system from SYS_STATUS/VFR_HUD, on the IMU's boot clock."""
+    if not raw or not offsets:
+        return {}
+    off = float(np.median(offsets))
+    out = {}
+    for typ, name in (("SYS_STATUS", "current"), ("VFR_HUD", "throttle")):
+        rows = np.array([(t, v) for s, k, t, v in raw if s == system and k == typ and np.isfinite(v)]).reshape(-1, 2)
+        if rows.shape[0]:
+            out[name] = (rows[:, 0] - off, rows[:, 1])
+    return out
+
+
 def _source_key(msg: Any, typ: str) -> tuple:
     if typ in ("RAW_IMU", "HIGHRES_IMU"):
         inst = int(getattr(msg, "id", 0) or 0)
@@ -260,8 +290,9 @@ def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
     One RAW_IMU per IMU sample: time_usec = t_imu µs (t_imu must be ≥ 0), acc mG, gyro mrad/s,
     temperature c°C (NaN → 0 "not provided", 0 °C → 1 as the spec asks), mag mgauss = the latest mag
     sample at or before that time (sample-and-hold; zeros before the first). Values are rounded and
-    clipped to int16. Each packet is prefixed by the 8-byte big-endian µs timestamp of tlogs
-    (``_TLOG_EPOCH_US`` + time_usec, so files are reproducible).
+    clipped to int16. ``data.series`` ``current`` (A) and ``throttle`` (0..1), where present, are written as
+    SYS_STATUS current_battery (cA) and VFR_HUD throttle (%) at their own times. Each packet is prefixed by
+    the 8-byte big-endian µs timestamp of tlogs (``_TLOG_EPOCH_US`` + time_usec, so files are reproducible).
     """
     from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -289,6 +320,19 @@ def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
         out.extend(msg.pack(mav))
         mav.seq = (mav.seq + 1) % 256
 
+    # the vehicle's series (ImuData.series): SYS_STATUS current_battery cA, VFR_HUD throttle %, at their own times
+    status: list[tuple[int, Any]] = []
+    for key in ("current", "throttle"):
+        if key in data.series and data.series[key][0].size:
+            ts, xs = (np.asarray(v, np.float64) for v in data.series[key])
+            for us_s, x in zip(np.rint(ts * 1e6).astype(np.int64).tolist(), xs.tolist(), strict=True):
+                if us_s < 0 or not np.isfinite(x):
+                    continue
+                status.append((us_s, mav.sys_status_encode(0, 0, 0, 0, 0, int(np.clip(round(x * 100), -1, 32767)),
+                                                           -1, 0, 0, 0, 0, 0, 0) if key == "current"
+                               else mav.vfr_hud_encode(0, 0, 0, int(np.clip(round(x * 100), 0, 65535)), 0, 0)))
+    status.sort(key=lambda e: e[0])
+    js = 0
     next_hb = None
     rows = np.concatenate([usec[:, None], acc, gyro, mag, temp_c[:, None]], axis=1).tolist()
     with open(path, "wb") as f:
@@ -296,6 +340,9 @@ def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
             if next_hb is None or us >= next_hb:
                 put(hb, us)
                 next_hb = us + 1_000_000
+            while js < len(status) and status[js][0] <= us:
+                put(status[js][1], status[js][0])
+                js += 1
             put(mav.raw_imu_encode(us, ax, ay, az, gx, gy, gz, mx, my, mz, 0, tc), us)
             if len(out) > 1 << 20:
                 f.write(out)

@@ -32,7 +32,7 @@ from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 _RELATIVE_INVALID = 2147483647  # PX4's RELATIVE_TIMESTAMP_INVALID
-_TOPICS = ["sensor_gyro", "sensor_accel", "sensor_mag", "sensor_combined"]
+_TOPICS = ["sensor_gyro", "sensor_accel", "sensor_mag", "sensor_combined", "battery_status", "actuator_controls_0"]
 
 
 class UlogReader:
@@ -115,7 +115,24 @@ class UlogReader:
             yield from asm.pop()
         asm.add(*filt.flush())
         filt.finish()
+        asm.series = _series(topics)
         yield from asm.pop(final=True)
+
+
+def _series(topics: dict[tuple[str, int], Any]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """ImuData.series: ``current`` from battery_status instance 0 ``current_a`` (A; −1 = not measured, left out),
+    ``throttle`` from actuator_controls_0 ``control[3]`` (0..1), at ``timestamp`` (µs since boot)."""
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for (topic, field), name in ((("battery_status", "current_a"), "current"),
+                                 (("actuator_controls_0", "control[3]"), "throttle")):
+        d = topics.get((topic, 0))
+        if d is None or field not in d or "timestamp" not in d:
+            continue
+        t, x = np.asarray(d["timestamp"], np.float64) * 1e-6, np.asarray(d[field], np.float64)
+        ok = np.isfinite(x) & (x >= 0 if name == "current" else np.isfinite(x))
+        if ok.any():
+            out[name] = (t[ok], x[ok])
+    return out
 
 
 def _xyz(d: dict[str, np.ndarray], *names: str) -> np.ndarray | None:

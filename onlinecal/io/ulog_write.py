@@ -53,7 +53,17 @@ TOPICS: dict[str, list[tuple[str, str, str]]] = {
                               ("uint8_t[4]", "4u1", "_padding0")],
     "sensor_mag": _COMMON + [("bool", "u1", "is_external"), ("uint8_t[7]", "7u1", "_padding0")],
 }
-_MSG_ID = {name: i for i, name in enumerate(TOPICS)}
+# a vehicle's series (ImuData.series), written only where the data has them: battery_status.current_a (A;
+# PX4's msg/BatteryStatus.msg, its first fields) and actuator_controls_0.control[3] (the throttle, 0..1; PX4's
+# msg/ActuatorControls.msg before v1.14)
+SERIES_TOPICS: dict[str, list[tuple[str, str, str]]] = {
+    "battery_status": [("uint64_t", "<u8", "timestamp"), ("float", "<f4", "voltage_v"),
+                       ("float", "<f4", "current_a")],
+    "actuator_controls_0": [("uint64_t", "<u8", "timestamp"), ("uint64_t", "<u8", "timestamp_sample"),
+                            ("float[8]", "8<f4", "control")],
+}
+SERIES_OF = {"battery_status": "current", "actuator_controls_0": "throttle"}
+_MSG_ID = {name: i for i, name in enumerate(list(TOPICS) + list(SERIES_TOPICS))}
 
 
 def _msg(msg_type: bytes, payload: bytes) -> bytes:
@@ -62,7 +72,7 @@ def _msg(msg_type: bytes, payload: bytes) -> bytes:
 
 
 def _format_message(name: str) -> bytes:
-    fields = "".join(f"{ut} {fn};" for ut, _, fn in TOPICS[name])
+    fields = "".join(f"{ut} {fn};" for ut, _, fn in {**TOPICS, **SERIES_TOPICS}[name])
     return _msg(b"F", f"{name}:{fields}".encode())
 
 
@@ -106,6 +116,23 @@ def _records(name: str, usec: NDArray[np.int64], xyz: NDArray[np.float64],
     return rec.view(np.uint8).reshape(usec.size, dt.itemsize)
 
 
+def _series_records(name: str, usec: NDArray[np.int64], x: NDArray[np.float64]) -> NDArray[np.uint8]:
+    """(K, 3 + record size) bytes of a series topic: current_a, or control[3] (the throttle)."""
+    fields = SERIES_TOPICS[name]
+    dt = np.dtype([("msg_size", "<u2"), ("msg_type", "u1"), ("msg_id", "<u2")] + [(fn, nt) for _, nt, fn in fields])
+    rec = np.zeros(usec.size, dt)
+    rec["msg_size"] = dt.itemsize - 3
+    rec["msg_type"] = ord("D")
+    rec["msg_id"] = _MSG_ID[name]
+    rec["timestamp"] = usec
+    if name == "battery_status":
+        rec["current_a"] = x
+    else:
+        rec["timestamp_sample"] = usec
+        rec["control"][:, 3] = x
+    return rec.view(np.uint8).reshape(usec.size, dt.itemsize)
+
+
 def _usec(t: NDArray[np.float64], what: str) -> NDArray[np.int64]:
     t = np.asarray(t, np.float64)
     if t.size and (not np.all(np.isfinite(t)) or t.min() < 0):
@@ -115,7 +142,8 @@ def _usec(t: NDArray[np.float64], what: str) -> NDArray[np.int64]:
 
 def write_ulog(path: str | Path, data: ImuData, sys_name: str = "onlinecal simulate") -> None:
     """Write ``data`` as a PX4 ULog of the raw topics sensor_accel, sensor_gyro (one sample per IMU sample,
-    same stamps) and sensor_mag (its own clock), with the calibration parameters (module docstring).
+    same stamps) and sensor_mag (its own clock), with the calibration parameters (module docstring); a
+    ``current``/``throttle`` series as battery_status.current_a / actuator_controls_0.control[3].
 
     Shapes/units: t_imu (N,) s ≥ 0 → µs (rounded); gyro (N, 3) rad/s, acc (N, 3) m/s², mag (M, 3) gauss → float32;
     temp (N,) °C (NaN stays NaN: PX4's "unknown"). The 'D' messages of all topics are merged in time order
@@ -128,6 +156,12 @@ def write_ulog(path: str | Path, data: ImuData, sys_name: str = "onlinecal simul
     if data.n_mag:
         parts.append(_records("sensor_mag", um, data.mag, np.full(um.size, np.nan)))
         stamps.append(um)
+    series = [n for n, k in SERIES_OF.items() if k in data.series and np.asarray(data.series[k][0]).size]
+    for name in series:
+        ts, xs = data.series[SERIES_OF[name]]
+        us = _usec(np.asarray(ts, np.float64), SERIES_OF[name])
+        parts.append(_series_records(name, us, np.asarray(xs, np.float64)))
+        stamps.append(us)
     topic_of = np.concatenate([np.full(s.size, k) for k, s in enumerate(stamps)])
     order = np.lexsort((topic_of, np.concatenate(stamps)))  # time, then topic: a stable merge
     sizes = np.array([p.shape[1] for p in parts])[topic_of[order]]
@@ -148,7 +182,7 @@ def write_ulog(path: str | Path, data: ImuData, sys_name: str = "onlinecal simul
     start = int(min((s[0] for s in stamps if s.size), default=0))
     head = bytearray(ULOG_MAGIC + bytes([ULOG_VERSION]) + struct.pack("<Q", start))
     head += _msg(b"B", bytes(16) + struct.pack("<3Q", 0, 0, 0))
-    for name in TOPICS:
+    for name in list(TOPICS) + series:
         head += _format_message(name)
     for key, value in (("sys_name", sys_name), ("ver_hw", "SITL")):
         v = value.encode()
@@ -158,7 +192,7 @@ def write_ulog(path: str | Path, data: ImuData, sys_name: str = "onlinecal simul
             head += _msg(b"P", _key_value(f"int32_t {name}", struct.pack("<i", int(val))))
         else:
             head += _msg(b"P", _key_value(f"float {name}", struct.pack("<f", float(val))))
-    for name in TOPICS:
+    for name in list(TOPICS) + series:
         head += _msg(b"A", struct.pack("<BH", 0, _MSG_ID[name]) + name.encode())
     with open(path, "wb") as f:
         f.write(head)

@@ -14,7 +14,7 @@ notes/effects_spec.md). Each effect is a small frozen dataclass with
   1     lever_arm                               the accelerometer's input (specific force at r)
   --    paper model ``raw = M⁻¹·c + o``          (recomputed for a sensor whose input changed)
   2     temperature_bias, bias_drift,           additive, in raw units, at the sample's stamp
-        g_sensitivity
+        g_sensitivity, mag_current
   3     scale_nonlinearity                      ``raw ← raw·(1 + c·|raw|)`` on the whole raw value
   --    white noise, ADC quantisation           (``simulate``)
   4     axis_sign                               driver/mounting sign error, after the ADC
@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 # the one vocabulary (names, sensors, keys and defaults, inverse, UKF state) and the forward models production
 # shares: production owns them, the simulator consumes them
-from ..effect_registry import AXES, EFFECT_KEYS, EFFECTS, REGISTRY, lever_arm_acceleration
+from ..effect_registry import ALL_EFFECTS, AXES, EFFECT_KEYS, EFFECTS, REGISTRY, lever_arm_acceleration
 
 if TYPE_CHECKING:  # runtime import would be circular (sensors imports this module)
     from .sensors import SimContext
@@ -439,17 +439,22 @@ EFFECT_CLASSES: dict[str, type[Effect]] = {
     c.name: c for c in (TemperatureBias, BiasDrift, GSensitivity, TimeOffset, Saturation, ScaleNonlinearity,
                         LeverArm, AxisSign)
 }
-assert tuple(EFFECT_CLASSES) == EFFECTS
-assert all(REGISTRY[n].forward == c.__name__ for n, c in EFFECT_CLASSES.items())
+assert tuple(EFFECT_CLASSES) == EFFECTS  # mag_current (a vehicle effect) is added after its class, at the end
 
 # Keys of each effect and their defaults: the registry's EFFECT_KEYS (None: depends on the sensor, see
-# DEFAULT_LIMIT; axis None = all); every class has exactly those fields and defaults.
-assert {n: {f.name: f.default for f in fields(c)}  # type: ignore[arg-type]
-        for n, c in EFFECT_CLASSES.items()} == EFFECT_KEYS
-_STR_KEYS = ("sensor", "axis")
+# DEFAULT_LIMIT; axis None = all); every class has exactly those fields and defaults (checked at the end).
+_STR_KEYS = ("sensor", "axis", "basis")
 
 
 def _value(name: str, key: str, text: str) -> Any:
+    if name == "mag_current" and key == "coeff":  # 3 numbers (x;y;z), ';'-separated like the matrix
+        try:
+            v3 = tuple(float(x) for x in text.split(";"))
+        except ValueError:
+            raise EffectError(f"{name}: coeff must be 3 numbers separated by ';' (got {text!r})") from None
+        if len(v3) != 3:
+            raise EffectError(f"{name}: coeff must be 3 numbers separated by ';' (got {len(v3)})")
+        return v3
     if key == "matrix":
         try:
             v9 = [float(x) for x in text.split(";")]
@@ -460,7 +465,7 @@ def _value(name: str, key: str, text: str) -> Any:
         return tuple(tuple(v9[3 * i : 3 * i + 3]) for i in range(3))
     if key == "axis":
         return None if text == "all" else text
-    if key == "sensor":
+    if key in ("sensor", "basis"):
         return text
     try:
         v = float(text)
@@ -474,7 +479,7 @@ def _value(name: str, key: str, text: str) -> Any:
 def make_effect(name: str, **params: Any) -> Effect:
     """An effect by name with keyword parameters (spec keys; ``axis="all"`` or None for every axis)."""
     if name not in EFFECT_CLASSES:
-        raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+        raise EffectError(f"unknown effect {name!r}; known: {', '.join(ALL_EFFECTS)}")
     valid = EFFECT_KEYS[name]
     for k in params:
         if k not in valid:
@@ -488,6 +493,8 @@ def make_effect(name: str, **params: Any) -> Effect:
             params[k] = float(v)
         if k == "matrix" and isinstance(v, list):
             params[k] = tuple(tuple(r) if isinstance(r, list) else r for r in v)
+        if name == "mag_current" and k == "coeff" and isinstance(v, (list, tuple, np.ndarray)):
+            params[k] = tuple(v)
     return EFFECT_CLASSES[name](**params)
 
 
@@ -499,7 +506,7 @@ def parse_effect(spec: str) -> Effect:
     params: dict[str, Any] = {}
     try:
         if name not in EFFECT_CLASSES:
-            raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+            raise EffectError(f"unknown effect {name!r}; known: {', '.join(ALL_EFFECTS)}")
         for item in (s.strip() for s in rest.split(",")) if rest.strip() else ():
             key, eq, text = item.partition("=")
             key, text = key.strip(), text.strip()
@@ -520,7 +527,7 @@ def from_describe(d: dict[str, Any]) -> Effect:
     ``clipped_fraction`` are ignored."""
     name = d.get("effect")
     if name not in EFFECT_CLASSES:
-        raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+        raise EffectError(f"unknown effect {name!r}; known: {', '.join(ALL_EFFECTS)}")
     keys = EFFECT_KEYS[name]
     return make_effect(name, **{k: v for k, v in d.items() if k in keys})
 
@@ -586,7 +593,8 @@ def random_effect(name: str, rng: np.random.Generator, session: Any = None) -> E
       (``session``: the clean Simulation or its ImuData of the same profile/seed; required);
     * scale_nonlinearity — gyro coeff 1e-3…5e-3 per rad/s;
     * lever_arm — |r| 0.02…0.1 m in a uniformly random direction;
-    * axis_sign — random sensor and axis.
+    * axis_sign — random sensor and axis;
+    * mag_current — :func:`random_mag_current` (a vehicle profile is needed to simulate it).
     """
     def sign() -> float:
         return float(rng.choice([-1.0, 1.0]))
@@ -620,7 +628,9 @@ def random_effect(name: str, rng: np.random.Generator, session: Any = None) -> E
     if name == "axis_sign":
         return make_effect(name, sensor=str(rng.choice(["gyro", "accel", "mag"])),
                            axis=str(rng.choice(["x", "y", "z"])))
-    raise EffectError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+    if name == "mag_current":
+        return random_mag_current(rng)
+    raise EffectError(f"unknown effect {name!r}; known: {', '.join(ALL_EFFECTS)}")
 
 
 def random_gsens_matrix(rng: np.random.Generator) -> GSensitivity:
@@ -676,3 +686,132 @@ class MagDisturbance(Effect):
         ctx.mag[on] += np.linalg.inv(ctx.truth.mag.matrix) @ d  # raw = M⁻¹ c + o: the linear part
         ctx.note(self, {"disturbed_samples": int(on.sum()), "t0": float(self.start),
                         "t1": float(self.start + self.duration)})
+
+
+# -- mag_current: magnetometer interference from the motor current (a vehicle effect) --------------------------
+
+# Battery current of the simulated vehicles, A, as a function of throttle (0…1). Momentum theory: rotor power
+# ∝ thrust^1.5 (P = T^1.5/√(2ρA)), and ArduPilot's MOT_THST_EXPO makes thrust about linear in throttle, so at
+# a constant battery voltage I ≈ I_AVIONICS + I_FULL·throttle^1.5. I_FULL 40 A: a 4S 450–550-size quad, four
+# motors of ~10 A at full throttle (hover at throttle ≈ 0.5: ~14 A, as such frames draw); I_AVIONICS 0.5 A
+# (flight controller, GPS, receiver, telemetry radio).
+I_FULL_A = 40.0
+I_AVIONICS_A = 0.5
+SERIES_RATE_HZ = 10.0  # ArduPilot logs BAT and CTUN at 10 Hz (copter's 10-Hz loop); the simulator's series rate
+# The motors' current follows the throttle command through the rotor's mechanical time constant: 50–150 ms for
+# 5–10-inch props on 2-4 kg-thrust motors (ESC step-response measurements, e.g. Bangura & Mahony 2012); 0.1 s.
+# (ArduCopter also ramps the take-off over MOT_SPOOL_TIME = 0.5 s; the trajectory's throttle steps instantly.)
+TAU_MOTOR_S = 0.1
+
+
+def motor_throttle(trajectory: Any, t: Array) -> Array:
+    """The throttle the motors deliver at times t (N,) s: the trajectory's throttle command through a first-order
+    lag of TAU_MOTOR_S on its integration grid, zero-order hold between grid points. This is what the current
+    (and so the interference) follows; the simulator logs it as the throttle series as well."""
+    from scipy.signal import lfilter
+
+    u = np.asarray(trajectory.throttle, float)
+    a = float(trajectory.dt) / (TAU_MOTOR_S + float(trajectory.dt))  # backward-Euler discretisation
+    y = lfilter([a], [1.0, a - 1.0], u, zi=[(1.0 - a) * u[0]])[0] if u.size else u
+    k = np.clip(np.floor(np.asarray(t, float) / trajectory.dt).astype(np.intp), 0, max(u.size - 1, 0))
+    out: Array = y[k]
+    return out
+
+
+def battery_current(throttle: Array) -> Array:
+    """Battery current (A) at throttle (0…1), (N,) → (N,): I_AVIONICS_A + I_FULL_A·throttle^1.5."""
+    thr = np.clip(np.asarray(throttle, float), 0.0, 1.0)
+    out: Array = I_AVIONICS_A + I_FULL_A * thr ** 1.5
+    return out
+
+
+def vehicle_series(trajectory: Any, duration: float, rate: float = SERIES_RATE_HZ) -> dict[str, tuple[Array, Array]]:
+    """The ``throttle`` (0…1) and ``current`` (A) series a flight log carries (CTUN ThO, BAT Curr), sampled at
+    ``rate`` Hz over [0, duration] s from a vehicle trajectory's throttle ({} for a trajectory without one)."""
+    if not hasattr(trajectory, "throttle") or not hasattr(trajectory, "at"):
+        return {}
+    t = np.arange(0.0, duration + 1e-9, 1.0 / rate)
+    thr = motor_throttle(trajectory, t)
+    return {"throttle": (t, thr), "current": (t.copy(), battery_current(thr))}
+
+
+@dataclass(frozen=True)
+class MagCurrent(Effect):
+    """Magnetometer interference from the motor current (ArduPilot's compassmot, PX4's CAL_MAG_COMP): the raw
+    magnetometer gains ``coeff·x`` with x the battery current (A, ``basis=current``) or the throttle (0…1,
+    ``basis=throttle``) at the sample's instant.
+
+    One convention throughout (simulator, ``extensions.remove_mag_current``, diagnose, the export): ``coeff``
+    (3,) is in the **raw** magnetometer frame and unit, before the hard- and soft-iron model, raw = M⁻¹·c + o +
+    coeff·x (stage 2, additive at the sample's stamp). The export maps it to each firmware's frame (ArduPilot
+    adds COMPASS_MOT after its soft iron, PX4 CAL_MAGn_xCOMP before; ``export._compassmot``).
+    x comes from the vehicle trajectory's throttle as the motors deliver it (:func:`motor_throttle`, a 0.1-s
+    lag; :func:`battery_current` for the current), so the effect needs a vehicle profile (multirotor,
+    fixedwing). Real vehicles: compassmot accepts interference up to 30 % of the field at full throttle, 60 %
+    is "bad" (ArduPilot compass-setup-advanced); a 40-A quad with the compass on the frame near the power leads
+    shows 0.1–0.3 field at full throttle, i.e. ~1e-3…4e-3 G per A in the 0.48-G field.
+    On the command line coeff is 3 numbers separated by ``;`` (``mag_current:basis=current,coeff=2e-3;0;-3e-3``).
+    """
+
+    name: ClassVar[str] = "mag_current"
+    stage: ClassVar[int] = 2
+    basis: str = "current"
+    coeff: tuple[float, float, float] = (2e-3, -1e-3, 3e-3)
+
+    @property
+    def sensor(self) -> str:  # type: ignore[override]
+        return "mag"
+
+    @property
+    def axis(self) -> None:
+        return None
+
+    def __post_init__(self) -> None:
+        if self.basis not in ("current", "throttle"):
+            raise EffectError(f"{self.name}: basis must be current or throttle (got {self.basis!r})")
+        try:
+            k = np.asarray(self.coeff, dtype=float)
+        except (TypeError, ValueError):
+            k = np.zeros(0)
+        if k.shape != (3,) or not np.all(np.isfinite(k)) or np.abs(k).max() > 10.0:
+            raise EffectError(f"{self.name}: coeff must be 3 finite numbers within ±10 (got {self.coeff!r})")
+        object.__setattr__(self, "coeff", tuple(float(v) for v in k))
+
+    def params(self) -> dict[str, Any]:
+        return {"basis": self.basis, "coeff": list(self.coeff)}
+
+    def spec(self) -> str:
+        return f"{self.name}:basis={self.basis},coeff=" + ";".join(repr(v) for v in self.coeff)
+
+    def x(self, trajectory: Any, t: Array) -> Array:
+        """The regressor at times t (N,): throttle (0…1) or battery current (A) of the vehicle."""
+        if not hasattr(trajectory, "throttle") or not hasattr(trajectory, "at"):
+            raise EffectError(f"{self.name}: needs a vehicle profile (multirotor, fixedwing) for its "
+                              f"{self.basis}; this profile has no motors")
+        thr = motor_throttle(trajectory, t)
+        return thr if self.basis == "throttle" else battery_current(thr)
+
+    def apply(self, ctx: SimContext) -> None:
+        x = self.x(ctx.trajectory, ctx.t_mag)
+        ctx.mag += x[:, None] * np.asarray(self.coeff)[None, :]
+
+
+def random_mag_current(rng: np.random.Generator) -> MagCurrent:
+    """A motor interference of a realistic size: basis current or throttle, a uniformly random direction in the
+    raw frame, 0.05…0.3 of the field at full throttle (the simulator's raw unit is the gauss, its field
+    FIELD_GAUSS = 0.48 G; compassmot calls up to 30 % acceptable) — per A for the current basis (÷ I_FULL_A)."""
+    from ..specs import FIELD_GAUSS
+
+    u = rng.standard_normal(3)
+    k = u / np.linalg.norm(u) * float(rng.uniform(0.05, 0.3)) * FIELD_GAUSS
+    basis = str(rng.choice(["current", "throttle"]))
+    if basis == "current":
+        k = k / I_FULL_A
+    return MagCurrent(basis=basis, coeff=(float(k[0]), float(k[1]), float(k[2])))
+
+
+EFFECT_CLASSES[MagCurrent.name] = MagCurrent
+assert tuple(EFFECT_CLASSES) == ALL_EFFECTS
+assert all(REGISTRY[n].forward == c.__name__ for n, c in EFFECT_CLASSES.items())
+assert {n: {f.name: f.default for f in fields(c)}  # type: ignore[arg-type]
+        for n, c in EFFECT_CLASSES.items()} == EFFECT_KEYS

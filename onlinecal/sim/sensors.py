@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
 from ..specs import ACCEL_SPEC, FIELD_DIP_DEG, FIELD_GAUSS, GYRO_SPEC, MAG_SPEC, SensorSpec  # noqa: F401 (re-export)
-from .effects import order_effects
+from .effects import order_effects, vehicle_series
 from .flight import (
     VIBE_HEALTHY,
     VehicleTrajectory,
@@ -340,7 +340,8 @@ def simulate(
     for hook in ctx.post:
         hook(out)
     tmp = np.round((ctx.temp + rng.normal(0, 0.02, ctx.temp.shape)) * 100) / 100
-    data = ImuData(ctx.t_imu, out["gyro"], out["accel"], tmp, ctx.t_mag, out["mag"], f"sim:{profile}:{seed}")
+    data = ImuData(ctx.t_imu, out["gyro"], out["accel"], tmp, ctx.t_mag, out["mag"], f"sim:{profile}:{seed}",
+                   series=vehicle_series(traj, T))  # a vehicle's throttle and current as its log carries them
     tr = Truth(
         cal, profile, seed, imu_rate, mag_rate, noise=sig, segments=traj.annotations(),
         effects=[{**e.describe(), **ctx.info.get(id(e), {})} for e in effects], field_world=h_W.tolist(),

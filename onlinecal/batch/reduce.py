@@ -12,13 +12,15 @@ blocks, never whole:
 2. **Classification** on the cells, with the segmenter's own tests (:func:`onlinecal.batch.segment.find_statics`:
    noise floors from the low percentile of the windowed spread, the absolute caps, the mean rate near the rest
    bias; and its quasi-static test, which the pipeline falls back to): rest cells and motion cells.
-3. **Selection** within the budget: every rest (a rest longer than 60 s keeps its first and last 30 s: the
-   bias fit of eqs. 34–35 and the static means of eq. 32 need many rests more than long ones, and the motions
-   either side keep their rest edges); the motions between rests, a short one (≤ 60 s) as one span with both of
+3. **Selection** within the budget: every rest, each trimmed to its first and last ``cap`` seconds (cap ≤ 30 s,
+   shortened down to 1 s until the rests fit 3/4 of the budget: the bias fit of eqs. 34–35 and the static means
+   of eq. 32 need many rests more than long ones, and the motions either side keep their rest edges); the
+   motions between rests, a short one (≤ 60 s) as one span with both of
    its rests (the rest-to-rest integral of eq. 36), a longer one cut into 30 s spans. Spans are chosen
    greedily for coverage first — turn angle about each raw axis in each direction (up to 4π each) and raw
-   magnetometer directions on the sphere (24 bins, the mag fit is coverage-weighted by attitude) — then
-   evenly in time to fill the budget (a representative subset: drift and temperature over the whole log).
+   magnetometer directions on the sphere (24 bins, the mag fit is coverage-weighted by attitude) — then the
+   rest-to-rest motions, then the long motions' spans, each evenly in time, to fill the budget (a
+   representative subset: drift and temperature over the whole log).
 4. **Samples** (pass 2): the kept spans' samples, each contiguous run of kept cells one piece. The pieces go
    to :func:`onlinecal.batch.run_batch` as the logs of one unit (the pipeline pools logs already), so no
    integral or window bridges a dropped stretch.
@@ -43,12 +45,13 @@ Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 BUDGET = 150_000  # IMU samples given to the batch: 12.5 min at 200 Hz, 25 min at 100 Hz
-REST_KEEP_S = 30.0  # a long rest keeps its first and last REST_KEEP_S
+REST_KEEP_S = 30.0  # a long rest keeps at most its first and last REST_KEEP_S
+REST_SHARE = 0.75  # of the budget at most for rests (a long rest's length weighs as its cube in eqs. 34-35)
 WHOLE_MOTION_S = 60.0  # a rest-to-rest motion up to this long is kept (or dropped) whole
 SPAN_S = 30.0  # a longer motion is cut into spans of this length
 TURN_TARGET = 4 * np.pi  # rad of turn per raw axis and direction that counts as covered
 MAG_BIN_TARGET = 8  # cells per magnetometer direction bin that count as covered
-READ_BLOCK = 1 << 16
+READ_BLOCK = 1 << 14  # IMU samples per block read (the readers' blocks are transient)
 MAG_CELL_DEG = 5.0  # the magnetometer sample's sphere grid (the fit weights 10° cells: four of these each)
 MAG_PER_CELL = 16  # raw mag samples kept per cell of the whole log (the fit keeps ≤ 30 per 10° cell)
 
@@ -213,28 +216,30 @@ def select_cells(c: dict[str, Array], budget_cells: int, k: int, rate: float) ->
     cell_s = k / rate
     still = still_cells(c)
     rest_runs = [(a, b) for a, b in _runs(still) if b - a >= 2]
-    edge = max(1, int(round(REST_KEEP_S / cell_s)))
+    # every rest (each a static attitude for eq. 32, a bias estimate for eqs. 34-35), each trimmed to its first
+    # and last ``cap`` cells: the longest cap (≤ REST_KEEP_S) whose total fits REST_SHARE of the budget
+    lens = np.array([b - a for a, b in rest_runs], int)
+
+    def rest_cells(cap: int) -> int:
+        return int(np.minimum(lens, 2 * cap).sum())
+
+    rest_budget = int(REST_SHARE * budget_cells)
+    cap = max(1, int(round(REST_KEEP_S / cell_s)))
+    min_cap = max(1, int(round(1.0 / cell_s)))  # 2 s of each rest at least
+    while cap > min_cap and rest_cells(cap) > rest_budget:
+        cap = max(min_cap, int(cap * 0.8))
+    order = list(range(len(rest_runs)))
+    if rest_cells(cap) > rest_budget:
+        # more rests than their share of the budget holds even at 2 s each: rests evenly over the log
+        n_fit = max(1, (rest_budget) // (2 * cap))
+        order = sorted(set(np.linspace(0, len(rest_runs) - 1, min(n_fit, len(rest_runs))).round().astype(int)))
     rest_keep = np.zeros(n_cells, bool)
-    for a, b in rest_runs:
-        if b - a > 2 * edge:
-            rest_keep[a:a + edge] = rest_keep[b - edge:b] = True
+    for j in order:
+        a, b = rest_runs[j]
+        if b - a > 2 * cap:
+            rest_keep[a:a + cap] = rest_keep[b - cap:b] = True
         else:
             rest_keep[a:b] = True
-    if rest_keep.sum() > budget_cells // 2:
-        # more rest than half the budget: rests evenly over the log (each whole as trimmed above)
-        order = [r for r in rest_runs]
-        cap, used = budget_cells // 2, 0
-        rest_keep[:] = False
-        for j in np.linspace(0, len(order) - 1, len(order)).astype(int)[:: max(1, int(np.ceil(
-                sum(min(b - a, 2 * edge) for a, b in order) / max(1, cap))))]:
-            a, b = order[j]
-            if used + min(b - a, 2 * edge) > cap:
-                break
-            if b - a > 2 * edge:
-                rest_keep[a:a + edge] = rest_keep[b - edge:b] = True
-            else:
-                rest_keep[a:b] = True
-            used += min(b - a, 2 * edge)
     keep |= rest_keep
     # motion spans: what lies between rests (with one cell of each flank's rest, so the segmenter sees the edge)
     in_rest = np.zeros(n_cells, bool)
@@ -243,11 +248,16 @@ def select_cells(c: dict[str, Array], budget_cells: int, k: int, rate: float) ->
     whole = max(1, int(round(WHOLE_MOTION_S / cell_s)))
     span = max(1, int(round(SPAN_S / cell_s)))
     spans: list[tuple[int, int]] = []
+    whole_flags: list[bool] = []
     for a, b in _runs(~in_rest):
         if b - a <= whole and a > 0 and b < n_cells:
             spans.append((a, b))
+            whole_flags.append(True)
         else:
-            spans += [(s, min(b, s + span)) for s in range(a, b, span)]
+            cut = [(s, min(b, s + span)) for s in range(a, b, span)]
+            spans += cut
+            whole_flags += [False] * len(cut)
+    sp_whole = np.array(whole_flags, bool)
     turn = c["turn"]
     bins = _mag_bins(c)
     sp_turn = np.array([turn[a:b].sum(axis=0) for a, b in spans]) if spans else np.zeros((0, 6))
@@ -271,9 +281,12 @@ def select_cells(c: dict[str, Array], budget_cells: int, k: int, rate: float) ->
         got_turn += sp_turn[j]
         got_mag += sp_mag[j]
         left -= int(sp_len[j])
-    # then evenly in time: every m-th of the spans not yet chosen, m from what the budget still holds
-    rest_sp = np.flatnonzero(~chosen)
-    if left > 0 and rest_sp.size:
+    # then evenly in time: the rest-to-rest motions (each a transition of eq. 36), then the spans of long
+    # motions; of each, every m-th of those not yet chosen, m from what the budget still holds
+    for kind in (True, False):
+        rest_sp = np.flatnonzero(~chosen & (sp_whole == kind))
+        if left <= 0 or not rest_sp.size:
+            continue
         fits = max(1, int(left // max(1.0, float(sp_len[rest_sp].mean()))))
         pick = rest_sp[np.unique(np.linspace(0, rest_sp.size - 1, min(fits, rest_sp.size)).round().astype(int))]
         for j in pick:
@@ -365,45 +378,51 @@ def read_reduced(path: str | Path, acc_scale: float | None = None, gyro_scale: f
     """
     reader = open_log(path, acc_scale, gyro_scale, mag_scale, imu=imu)
     joiner: _Joiner | None = _Joiner()
+    held: list[ImuData] = []  # the blocks while the log may still be short (the joiner holds the same arrays)
     cells: _Cells | None = None
     carry: list[Array] = []  # rows (t, gyro, acc) and mag (t, mag) not yet in a whole cell
     row0 = 0  # global IMU row of carry's first row
     n_total = 0
     msample = MagSample()
+
+    def to_cells(b: ImuData) -> None:
+        """The block's whole cells into ``cells``; the rows of a cell not yet complete wait in ``carry``."""
+        nonlocal carry, row0
+        assert cells is not None
+        t, g, a, tm, m = (np.concatenate([c, x]) for c, x in
+                          zip(carry, (b.t_imu, b.gyro, b.acc, b.t_mag, b.mag), strict=True))
+        whole = (t.size // cells.k) * cells.k
+        t_end = t[whole] if whole < t.size else np.inf
+        mm = tm < t_end
+        if whole:
+            cells.add(row0, t[:whole], g[:whole], a[:whole], tm[mm], m[mm])
+            row0 += whole
+        carry = [t[whole:].copy(), g[whole:].copy(), a[whole:].copy(), tm[~mm], m[~mm]]
+
     for b in reader.blocks(max_samples):
         n_total += b.n_imu
         msample.add(b.t_mag, b.mag)
         if joiner is not None:
             joiner.add(b)
+            held.append(b)
             if n_total <= budget:
                 continue
-            # over the budget: the blocks held so far become cells, the log is not held any more
-            held = joiner.imu_arrays()
+            # over the budget: the blocks held so far become cells one by one, the log is not held any more
             joiner = None
-            rate = (held[0].size - 1) / max(float(held[0][-1] - held[0][0]), 1e-9)
+            t_all = [x.t_imu for x in held if x.n_imu]
+            rate = (n_total - 1) / max(float(t_all[-1][-1] - t_all[0][0]), 1e-9)
             cells = _Cells(k=max(8, int(round(WINDOW_S * rate))))
-            carry = list(held)
-            del held
-        else:
-            assert cells is not None
-            carry = [np.concatenate([carry[0], b.t_imu]), np.concatenate([carry[1], b.gyro]),
-                     np.concatenate([carry[2], b.acc]), np.concatenate([carry[3], b.t_mag]),
-                     np.concatenate([carry[4], b.mag])]
-        assert cells is not None
-        t, g, a, tm, m = carry
-        whole = (t.size // cells.k) * cells.k
-        if whole:
-            t_end = t[whole] if whole < t.size else np.inf
-            mm = tm < t_end
-            cells.add(row0, t[:whole], g[:whole], a[:whole], tm[mm], m[mm])
-            carry = [t[whole:], g[whole:], a[whole:], tm[~mm], m[~mm]]
-            row0 += whole
+            carry = [np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3))]
+            del t_all, b
+            while held:
+                to_cells(held.pop(0))
+            continue
+        to_cells(b)
         del b
     if joiner is not None:
         return [joiner.result(reader, str(path))], None
     assert cells is not None
-    t, g, a, tm, m = carry
-    cells.add(row0, t, g, a, tm, m)  # the log's last, shorter cell
+    cells.add(row0, *carry)  # the log's last, shorter cell
     c = cells.arrays()
     rate = (n_total - 1) / max(float(c["t1"][-1] - c["t0"][0]), 1e-9)
     keep, figs = select_cells(c, max(1, budget // cells.k), cells.k, rate)
@@ -425,7 +444,7 @@ def read_reduced(path: str | Path, acc_scale: float | None = None, gyro_scale: f
         for j in np.flatnonzero((i_lo < g1) & (i_hi > g0)):
             s0, s1 = max(0, int(i_lo[j]) - g0), min(b.n_imu, int(i_hi[j]) - g0)
             for k in ("t_imu", "gyro", "acc", "temp"):
-                parts[j][k].append(getattr(b, k)[s0:s1])
+                parts[j][k].append(getattr(b, k)[s0:s1].copy())  # a copy: a view would keep the block alive
         if b.n_mag:
             for j in np.flatnonzero((t_lo <= b.t_mag[-1]) & (t_hi > b.t_mag[0])):
                 mm = (b.t_mag >= t_lo[j]) & (b.t_mag < t_hi[j])

@@ -81,11 +81,6 @@ class _Joiner:
         shape = (-1, 3) if k in ("gyro", "acc", "mag") else (-1,)
         return np.concatenate(parts).reshape(shape) if parts else np.zeros((0, 3) if len(shape) == 2 else 0)
 
-    def imu_arrays(self) -> tuple[np.ndarray, ...]:
-        """(t_imu, gyro, acc, t_mag, mag) joined; the joiner is spent (its blocks' headers dropped)."""
-        self.heads = []
-        return tuple(self._join(k) for k in ("t_imu", "gyro", "acc", "t_mag", "mag"))
-
     def result(self, reader: LogReader, source: str) -> ImuData:
         """The joined log with the reader's warnings (the joiner is spent)."""
         data = ImuData.concat(self.heads, source=source)  # warnings, boundaries, params, series

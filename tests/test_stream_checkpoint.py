@@ -63,8 +63,9 @@ def test_a_resume_right_after_a_divergence_escalates_as_an_uninterrupted_run() -
     second_res = [e for e in resumed.events if e["kind"] == "divergence"][1]
     assert j_ref == j_res and second_res == second_ref
     assert second_res["t"] - first["t"] < dv.ESCALATE_WINDOW_S
-    assert "second divergence within" in second_res["detail"] and "restarted from the cold prior" in second_res["detail"]
-    x_cold, sig_cold = dv.cold_prior(resumed.config, resumed.x)
+    assert "second divergence within" in second_res["detail"]
+    assert "restarted from the cold prior" in second_res["detail"]
+    _, sig_cold = dv.cold_prior(resumed.config, resumed.x)
     free = np.arange(3, 27)[~resumed.lay.consider[3:27]]
     assert np.array_equal(resumed.prior_sigma[free], sig_cold[free])
     assert np.array_equal(resumed.x, ref.x) and np.array_equal(resumed.P, ref.P)

@@ -289,11 +289,11 @@ def select_cells(c: dict[str, Array], budget_cells: int, k: int, rate: float) ->
             continue
         fits = max(1, int(left // max(1.0, float(sp_len[rest_sp].mean()))))
         pick = rest_sp[np.unique(np.linspace(0, rest_sp.size - 1, min(fits, rest_sp.size)).round().astype(int))]
-        for j in pick:
+        for j in pick.tolist():
             if sp_len[j] <= left:
                 chosen[j] = True
                 left -= int(sp_len[j])
-    for j in np.flatnonzero(chosen):
+    for j in np.flatnonzero(chosen).tolist():
         a, b = spans[j]
         # a kept span takes one rest cell on either side, so that the segmenter sees the rest it starts from
         keep[max(0, a - 1):min(n_cells, b + 1)] = True

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..io import _Joiner, open_log
+from ..io import BlockJoiner, open_log
 from ..io.base import ImuData
 from .segment import STILL_ACC_CAP, STILL_GYRO_CAP, WINDOW_S
 
@@ -265,7 +265,7 @@ def select_cells(c: dict[str, Array], budget_cells: int, k: int, rate: float) ->
     for j, (a, b) in enumerate(spans):
         bb = bins[a:b]
         sp_mag[j] = np.bincount(bb[bb >= 0], minlength=24)
-    sp_len = np.array([b - a for a, b in spans])
+    sp_len = np.array([b - a + 2 for a, b in spans], int)  # with its two flank cells (below)
     left = budget_cells - int(keep.sum())
     chosen = np.zeros(len(spans), bool)
     got_turn, got_mag = np.zeros(6), np.zeros(24)
@@ -377,7 +377,7 @@ def read_reduced(path: str | Path, acc_scale: float | None = None, gyro_scale: f
     order; the :class:`Reduction`). Raises :class:`onlinecal.io.LogError` as the readers do.
     """
     reader = open_log(path, acc_scale, gyro_scale, mag_scale, imu=imu)
-    joiner: _Joiner | None = _Joiner()
+    joiner: BlockJoiner | None = BlockJoiner()
     held: list[ImuData] = []  # the blocks while the log may still be short (the joiner holds the same arrays)
     cells: _Cells | None = None
     carry: list[Array] = []  # rows (t, gyro, acc) and mag (t, mag) not yet in a whole cell

@@ -18,7 +18,7 @@ from onlinecal.io.dataflash import DataflashReader, write_dataflash
 from onlinecal.io.tlog import TlogReader, write_tlog
 
 __all__ = [
-    "CsvReader", "DataflashReader", "ImuData", "LogError", "LogReader", "TlogReader", "open_log",
+    "BlockJoiner", "CsvReader", "DataflashReader", "ImuData", "LogError", "LogReader", "TlogReader", "open_log",
     "read_log", "write_csv", "write_dataflash", "write_log", "write_tlog",
 ]
 
@@ -60,7 +60,7 @@ def open_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
 _COLUMNS = ("t_imu", "gyro", "acc", "temp", "t_mag", "mag")  # ImuData's sample arrays
 
 
-class _Joiner:
+class BlockJoiner:
     """Blocks of one log joined as :func:`read_log` joins them: the samples column by column (each list freed
     once joined: the peak is the log plus one array of it; ImuData.concat of the blocks would hold the blocks
     and the joined log at once, twice the log), the blocks' warnings, boundaries, params and series."""
@@ -96,7 +96,7 @@ def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
     """The whole log as one ImuData (the concatenation of the reader's blocks), warnings, clock-segment
     boundaries, parameters and series included."""
     reader = open_log(path, acc_scale, gyro_scale, mag_scale, imu=imu)
-    joiner = _Joiner()
+    joiner = BlockJoiner()
     for b in reader.blocks(max_samples):
         joiner.add(b)
         del b

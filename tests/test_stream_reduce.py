@@ -110,22 +110,25 @@ def test_a_reduced_10_minute_flight_keeps_its_result_within_1_sigma(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_reduced_calibration_campaign_keeps_every_term_within_1_5_sigma(tmp_path):
-    # The paper's session at 400 Hz (123 601 IMU samples) reduced to 100 000: every rest kept, the rotation
-    # phases chosen for their turn coverage; the phase method still runs and every term is within 1.5σ of the
-    # whole log's (measured: 1.41σ at most, accel alpha y; a budget that cannot hold the phases — 90 000 here —
-    # falls back to the any-rotation gyro fit, and the fit moves by several σ: the budget must hold the campaign).
+def test_a_reduced_calibration_campaign_keeps_every_term_within_1_sigma(tmp_path):
+    # The paper's session at 400 Hz (123 601 IMU samples) reduced to 90 000 (73 %): every rest kept, the motions
+    # chosen for their turn and field coverage per sample; the phase method runs as on the whole log, every term
+    # keeps its σ and is within 1σ of the whole log's (measured: 0.92σ at most, gyro alpha z). Before the spans
+    # were chosen per sample of budget, the rotation phases took the budget, the gyro fit lost its transitions and
+    # its σ (scale, alpha, xi "undetermined") at 100 000, and at 90 000 fell back to the any-rotation fit, terms
+    # several σ off.
     p = tmp_path / "paper400.bin"
     write_log(p, simulate("paper", 1, imu_rate=400.0).data)
     full = run_batch([read_log(p)])
-    got, red = read_reduced(p, budget=100_000)
-    assert red is not None and red.rest_kept_s == pytest.approx(red.rest_s, rel=0.05)
+    got, red = read_reduced(p, budget=90_000)
+    assert red is not None and red.n_kept <= 90_000 and red.rest_kept_s == pytest.approx(red.rest_s, rel=0.05)
     res = run_batch(got, reduced=[red])
     method = full.steps["gyro"].figures["method"]
     assert method.startswith("phases") and res.steps["gyro"].figures["method"] == method
+    assert res.calibration.meta["batch"]["undetermined"] == full.calibration.meta["batch"]["undetermined"] == []
     worst = max(float(_z(full, res, s, t).max()) for s in ("gyro", "accel", "mag")
                 for t in ("bias", "scale", "alpha", "xi"))
-    assert worst <= 1.5
+    assert worst <= 1.0
 
 
 # VmHWM: the peak of the command's own process (ru_maxrss would carry the parent's peak across fork + exec)

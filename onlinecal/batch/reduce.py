@@ -17,7 +17,7 @@ blocks, never whole:
    of eq. 32 need many rests more than long ones, and the motions either side keep their rest edges); the
    motions between rests, a short one (≤ 60 s) as one span with both of
    its rests (the rest-to-rest integral of eq. 36), a longer one cut into 30 s spans. Spans are chosen
-   greedily for coverage first — turn angle about each raw axis in each direction (up to 4π each) and raw
+   greedily for coverage per cell of budget first — turn angle about each raw axis in each direction (up to 4π each) and raw
    magnetometer directions on the sphere (24 bins, the mag fit is coverage-weighted by attitude) — then the
    rest-to-rest motions, then the long motions' spans, each evenly in time, to fill the budget (a
    representative subset: drift and temperature over the whole log).
@@ -269,14 +269,16 @@ def select_cells(c: dict[str, Array], budget_cells: int, k: int, rate: float) ->
     left = budget_cells - int(keep.sum())
     chosen = np.zeros(len(spans), bool)
     got_turn, got_mag = np.zeros(6), np.zeros(24)
-    # coverage first: the span that adds most to the uncovered turn directions and field directions
+    # coverage first: the span that adds most to the uncovered turn directions and field directions per cell
+    # of budget it costs (a short transition between two rests turning 90° is worth as much per cell as a
+    # rotation phase; the gyro fit needs many transitions, eq. 36 over every rest-to-rest motion)
     while left > 0 and len(spans):
         gain = (np.minimum(sp_turn, np.maximum(TURN_TARGET - got_turn, 0)).sum(axis=1) / TURN_TARGET
                 + np.minimum(sp_mag, np.maximum(MAG_BIN_TARGET - got_mag, 0)).sum(axis=1) / MAG_BIN_TARGET)
         gain[chosen | (sp_len > left)] = 0.0
-        j = int(np.argmax(gain))
-        if gain[j] <= 1e-3:
+        if gain.max() <= 1e-3:
             break
+        j = int(np.argmax(gain / sp_len))
         chosen[j] = True
         got_turn += sp_turn[j]
         got_mag += sp_mag[j]

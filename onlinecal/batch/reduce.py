@@ -15,12 +15,12 @@ blocks, never whole:
 3. **Selection** within the budget: every rest, each trimmed to its first and last ``cap`` seconds (cap ≤ 30 s,
    shortened down to 1 s until the rests fit 3/4 of the budget: the bias fit of eqs. 34–35 and the static means
    of eq. 32 need many rests more than long ones, and the motions either side keep their rest edges); the
-   motions between rests, a short one (≤ 60 s) as one span with both of
-   its rests (the rest-to-rest integral of eq. 36), a longer one cut into 30 s spans. Spans are chosen
-   greedily for coverage per cell of budget first — turn angle about each raw axis in each direction (up to 4π each) and raw
-   magnetometer directions on the sphere (24 bins, the mag fit is coverage-weighted by attitude) — then the
-   rest-to-rest motions, then the long motions' spans, each evenly in time, to fill the budget (a
-   representative subset: drift and temperature over the whole log).
+   motions between rests, a short one (≤ 60 s) as one span with both of its rests (the rest-to-rest
+   integral of eq. 36), a longer one cut into 30 s spans. Spans are chosen greedily for coverage per cell of
+   budget first — turn angle about each raw axis in each direction (up to 4π each) and raw magnetometer
+   directions on the sphere (24 bins, the mag fit is coverage-weighted by attitude) — then the rest-to-rest
+   motions, then the long motions' spans, each evenly in time, to fill the budget (a representative subset:
+   drift and temperature over the whole log).
 4. **Samples** (pass 2): the kept spans' samples, each contiguous run of kept cells one piece. The pieces go
    to :func:`onlinecal.batch.run_batch` as the logs of one unit (the pipeline pools logs already), so no
    integral or window bridges a dropped stretch.

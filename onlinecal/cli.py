@@ -53,20 +53,39 @@ def _scales(a: argparse.Namespace) -> dict[str, Any]:
             "imu": getattr(a, "imu", 0)}
 
 
-def _read_logs(paths: Sequence[str], a: argparse.Namespace) -> list[Any]:
+def _check_regular(p: str) -> None:
     import stat
 
+    try:
+        mode = os.stat(p).st_mode
+    except OSError:
+        return  # missing: the reader's own one-line message
+    if stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode) or stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        # a FIFO or device never ends: reading it would hang instead of refusing it
+        raise UsageError(f"{p}: not a regular file (a FIFO, socket or device); give a log file")
+
+
+def _read_logs(paths: Sequence[str], a: argparse.Namespace) -> list[Any]:
     from .io import read_log
 
     for p in paths:
-        try:
-            mode = os.stat(p).st_mode
-        except OSError:
-            continue  # missing: the reader's own one-line message
-        if stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode) or stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
-            # a FIFO or device never ends: reading it would hang instead of refusing it
-            raise UsageError(f"{p}: not a regular file (a FIFO, socket or device); give a log file")
+        _check_regular(p)
     return [read_log(p, **_scales(a)) for p in paths]
+
+
+def _read_for_batch(paths: Sequence[str], a: argparse.Namespace) -> tuple[list[Any], list[Any]]:
+    """The logs for the batch in bounded memory (onlinecal.batch.reduce, issue 16.5): a log over the budget
+    becomes its kept stretches. Returns (logs, the reductions made)."""
+    from .batch.reduce import read_reduced
+
+    logs: list[Any] = []
+    reds: list[Any] = []
+    for p in paths:
+        _check_regular(p)
+        got, red = read_reduced(p, **_scales(a))
+        logs += got
+        reds += [red] if red is not None else []
+    return logs, reds
 
 
 def _load_cal(path: str) -> Any:
@@ -212,13 +231,18 @@ def cmd_batch(a: argparse.Namespace) -> int:
     report = _report_dir(a.report) if a.report else None
     steps = [f"read {Path(p).name}" for p in a.logs] + ["batch pipeline"] + (["report"] * 5 if report else [])
     with stages(steps, desc="batch") as st:
-        logs = []
+        logs, reds = [], []
         for p in a.logs:
             st.next(f"read {Path(p).name}")
-            logs += _read_logs([p], a)
+            if report:
+                logs += _read_logs([p], a)  # the report plots whole logs
+            else:
+                got, red = _read_for_batch([p], a)
+                logs += got
+                reds += red
         st.next("batch pipeline")
         t0 = time.perf_counter()
-        res = run_batch(logs, g=a.gravity)
+        res = run_batch(logs, g=a.gravity, reduced=reds)
         dt = time.perf_counter() - t0
         written = write_report(report, logs, "batch", batch=res, g=a.gravity, progress=st) if report else []
     _warn(res.warnings)
@@ -296,8 +320,9 @@ def cmd_replay(a: argparse.Namespace) -> int:
     _check_out(a.trace, "--trace", dash=False)
     _check_out(a.report, "--report", directory=True)
     report = _report_dir(a.report) if a.report else None
-    if a.init != "batch" and report is None:
-        streamed = _replay_streamed(a)  # helper io: constant memory in the logs' length
+    if report is None:
+        # helper io: constant memory in the logs' length; the batch start on the logs' reduced stretches
+        streamed = _replay_streamed(a)
         if streamed is not None:
             return streamed
     with bar(len(a.logs), desc="read", unit="logs") as pb:
@@ -346,10 +371,25 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
     from .progress import bar
     from .ukf.replay import replay_stream
 
-    init = None if a.init == "none" else _load_cal(a.init)
+    readers = [open_log(p, **_scales(a)) for p in a.logs]  # every file checked before the work starts
+    label, logs, init = "init", None, None
+    if a.init == "batch":
+        from .batch import run_batch
+        from .health import filter_start
+        from .progress import spinner
+
+        with spinner("batch (the filter's start)"):
+            logs, reds = _read_for_batch(a.logs, a)
+            bres = run_batch(logs, reduced=reds)
+        _warn(bres.warnings)
+        init, notes = filter_start(bres.calibration, _mag_raw(logs))
+        _warn(notes)
+        del bres
+        label = "batch"  # the kept stretches (the whole of a short log) serve the health verdict
+    elif a.init != "none":
+        init = _load_cal(a.init)
     if init is not None and init.extensions:
         return None
-    readers = [open_log(p, **_scales(a)) for p in a.logs]  # every file checked before the work starts
     from .fleet import REPLAY_CHUNK
 
     with bar(None, desc="replay", unit="samples") as pb:
@@ -361,7 +401,7 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
     for r in readers:
         _warn([f"{r.path}: {w}" for w in r.warnings])
     _warn(res.warnings)
-    return _replay_result(a, res, init, "init", None, None, [])
+    return _replay_result(a, res, init, label, logs, None, [])
 
 
 def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs: Sequence[Any] | None,

@@ -6,7 +6,7 @@ every log — a campaign is often several files (statics, turns, a sphere).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -67,13 +67,18 @@ class BatchResult:
         }
 
 
-def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
+def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0, reduced: Sequence[Any] = ()) -> BatchResult:
     """Calibrate gyro, accel and mag from raw logs of one unit (paper Sec. III).
 
     A sensor whose step cannot run (no mag in the logs, too few attitudes, no rest) is left out with
-    a warning naming the step; a result without any sensor raises FitError.
+    a warning naming the step; a result without any sensor raises FitError. ``reduced``: the
+    :class:`~onlinecal.batch.reduce.Reduction` of each long log whose kept stretches are among ``logs``
+    (:func:`~onlinecal.batch.reduce.read_reduced`), stated in ``meta.batch.reduced``.
     """
     rng = np.random.default_rng(seed)
+    # Field readings without IMU samples (a long log's magnetometer sample outside its kept stretches,
+    # onlinecal.batch.reduce): for the magnetometer fit only.
+    mag_only = [clean_log(d).data for d in logs if d.n_imu == 0 and d.n_mag > 0]
     logs = [d for d in logs if d.n_imu > 0]
     if not logs:
         raise FitError("no IMU samples in the logs")
@@ -114,9 +119,11 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
     mag: SensorCalibration | None = None
     acc: SensorCalibration | None = None
     gyro: SensorCalibration | None = None
+    mag_segs = [Segmentation(d, [], [], [], float("nan"), float("nan"), np.zeros(3), float("nan"))
+                for d in mag_only]
     if any(s.data.has_mag for s in segs):
         try:
-            mag, steps["mag"] = fit_magnetometer(segs, rng)
+            mag, steps["mag"] = fit_magnetometer(segs + mag_segs, rng)
         except FitError as e:
             warnings.append(f"mag step skipped: {e}")
     try:
@@ -131,7 +138,7 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
                             + "; ".join(where[:5]))
             first = steps["mag"]
             try:
-                mag, steps["mag"] = fit_magnetometer(segs, rng)
+                mag, steps["mag"] = fit_magnetometer(segs + mag_segs, rng)
                 steps["mag"].warnings[:0] = first.warnings
                 steps["mag"].figures["outliers"] += first.figures["outliers"] + n_dip
             except FitError as e:
@@ -172,6 +179,8 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0) -> BatchResult:
     res = BatchResult(Calibration(gyro=gyro, accel=acc, mag=mag, source="batch"), segs, steps, warnings)
     summary = res.summary()
     summary["undetermined"] = undetermined  # terms whose value is NOT a calibration (σ absent)
+    if reduced:
+        summary["reduced"] = [r.to_dict() for r in reduced]
     # B (model.Gauge) is the gyro's rotation-phase frame where the phase method gave the gyro matrix
     phases = gyro is not None and str(steps["gyro"].figures.get("method", "")).startswith("phases")
     cal = res.calibration.replace(meta={"batch": summary}, gauge="gyro_phases" if phases else None)

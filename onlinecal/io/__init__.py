@@ -18,7 +18,7 @@ from onlinecal.io.dataflash import DataflashReader, write_dataflash
 from onlinecal.io.tlog import TlogReader, write_tlog
 
 __all__ = [
-    "CsvReader", "DataflashReader", "ImuData", "LogError", "LogReader", "TlogReader", "open_log",
+    "BlockJoiner", "CsvReader", "DataflashReader", "ImuData", "LogError", "LogReader", "TlogReader", "open_log",
     "read_log", "write_csv", "write_dataflash", "write_log", "write_tlog",
 ]
 
@@ -60,33 +60,47 @@ def open_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float
 _COLUMNS = ("t_imu", "gyro", "acc", "temp", "t_mag", "mag")  # ImuData's sample arrays
 
 
+class BlockJoiner:
+    """Blocks of one log joined as :func:`read_log` joins them: the samples column by column (each list freed
+    once joined: the peak is the log plus one array of it; ImuData.concat of the blocks would hold the blocks
+    and the joined log at once, twice the log), the blocks' warnings, boundaries, params and series."""
+
+    def __init__(self) -> None:
+        self.cols: dict[str, list[np.ndarray]] = {k: [] for k in _COLUMNS}
+        self.heads: list[ImuData] = []
+
+    def add(self, b: ImuData) -> None:
+        for k in _COLUMNS:
+            self.cols[k].append(getattr(b, k))
+        # the block without its samples (fresh empty arrays: a view [:0] would keep the block alive)
+        e1, e3 = np.zeros(0), np.zeros((0, 3))
+        self.heads.append(replace(b, t_imu=e1, gyro=e3, acc=e3, temp=e1, t_mag=e1, mag=e3))
+
+    def _join(self, k: str) -> np.ndarray:
+        parts = self.cols.pop(k)
+        shape = (-1, 3) if k in ("gyro", "acc", "mag") else (-1,)
+        return np.concatenate(parts).reshape(shape) if parts else np.zeros((0, 3) if len(shape) == 2 else 0)
+
+    def result(self, reader: LogReader, source: str) -> ImuData:
+        """The joined log with the reader's warnings (the joiner is spent)."""
+        data = ImuData.concat(self.heads, source=source)  # warnings, boundaries, params, series
+        self.heads = []
+        joined: dict[str, Any] = {k: self._join(k) if self.cols[k] else getattr(data, k) for k in _COLUMNS}
+        data = replace(data, **joined)
+        data.warnings = list(reader.warnings)
+        return data
+
+
 def read_log(path: str | Path, acc_scale: float | None = None, gyro_scale: float | None = None,
              mag_scale: float | None = None, max_samples: int = 1 << 16, imu: int = 0) -> ImuData:
     """The whole log as one ImuData (the concatenation of the reader's blocks), warnings, clock-segment
     boundaries, parameters and series included."""
     reader = open_log(path, acc_scale, gyro_scale, mag_scale, imu=imu)
-    # Joined one array at a time, each list freed once joined: the peak is the log plus one array of it
-    # (ImuData.concat of the blocks would hold the blocks and the joined log at once, twice the log).
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in _COLUMNS}
-    heads = []
+    joiner = BlockJoiner()
     for b in reader.blocks(max_samples):
-        for k in _COLUMNS:
-            cols[k].append(getattr(b, k))
-        # the block without its samples (fresh empty arrays: a view [:0] would keep the block alive)
-        e1, e3 = np.zeros(0), np.zeros((0, 3))
-        heads.append(replace(b, t_imu=e1, gyro=e3, acc=e3, temp=e1, t_mag=e1, mag=e3))
+        joiner.add(b)
         del b
-    data = ImuData.concat(heads, source=str(path))  # warnings, boundaries, params, series
-    del heads
-    joined: dict[str, Any] = {}
-    for k in _COLUMNS:
-        parts = cols.pop(k)
-        joined[k] = np.concatenate(parts).reshape((-1, 3) if k in ("gyro", "acc", "mag") else (-1,)) if parts \
-            else getattr(data, k)
-        del parts
-    data = replace(data, **joined)
-    data.warnings = list(reader.warnings)
-    return data
+    return joiner.result(reader, str(path))
 
 
 def write_log(path: str | Path, data: ImuData) -> None:

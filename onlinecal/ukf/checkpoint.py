@@ -4,7 +4,14 @@ Generic over the filter's parts: each part is a dataclass (:mod:`.blocks`, :mod:
 :mod:`.rest`, :mod:`.vehicle`, :mod:`.magstart` …) serialised field by field (:func:`encode`), so a field
 added to a part is saved and restored without touching this module. numpy arrays keep their shape and
 dtype, tuples stay tuples, and non-finite floats (JSON has none) are tagged; every float round-trips
-bit-exactly through JSON. Schema /2 (the hand-mapped keys) still loads.
+bit-exactly through JSON. Schema /2 (the hand-mapped keys) and /3 (without the divergence history and the
+magnetic-disturbance gate, which then restart fresh, as they did) still load.
+
+Schema /4 saves the divergence history (:class:`.divergence.DivergenceLog`: the log times of the divergences,
+which decide whether the next one escalates to the cold prior) and the magnetic-disturbance gate
+(:class:`.magdisturb.MagDisturbanceGate`: armed, inside a stretch since when, blocks left out), so a run
+resumed right after a divergence or inside a disturbance goes on as an uninterrupted run would (issue 16).
+Their fields are checked on load (:func:`check_parts`): a damaged value is refused, never half-used.
 """
 
 from __future__ import annotations
@@ -22,26 +29,32 @@ from .attitude_init import MagCollector
 from .blocks import SampleBuffer
 from .config import UKFConfig
 from .detectors import HoldTracker, Lattice, RailDetector, RestDetector
+from .divergence import DivergenceLog
 from .health import EventLog, NisMonitor, none_to_inf
+from .magdisturb import MagDisturbanceGate
 from .magstart import MagStart
 from .noise import NoiseModel
 from .rest import RestAccumulator
 from .vehicle import MotionCoverage, VehicleDetector
 
-STATE_SCHEMA = "onlinecal.ukf-state/3"
+STATE_SCHEMA = "onlinecal.ukf-state/4"
+SCHEMA_V3 = "onlinecal.ukf-state/3"
 SCHEMA_V2 = "onlinecal.ukf-state/2"
 
 # the parts a checkpoint may construct (by class name; nothing else is ever instantiated from a file)
 PARTS: dict[str, type] = {c.__name__: c for c in (
     SampleBuffer, Lattice, RailDetector, RestDetector, HoldTracker, NisMonitor, EventLog, NoiseModel,
-    SensorSpec, VehicleDetector, MotionCoverage, RestAccumulator, MagStart, MagCollector)}
+    SensorSpec, VehicleDetector, MotionCoverage, RestAccumulator, MagStart, MagCollector, DivergenceLog,
+    MagDisturbanceGate)}
 
 # the filter's attributes that change while it runs, besides x and P (plain lists at the top level);
 # everything else follows from config, init and holds
 STATE_ATTRS = ("R_nom", "prior_x", "prior_sigma", "_hold_sigma", "_rate", "_L", "_buf", "_t_last",
                "_w_last", "_att_ok", "_next_trace", "_n_imu", "_n_blocks", "_nis", "_log", "_trace",
                "_rest_det", "_lat", "_holds", "_hold_new", "_noise", "_rails", "_T0", "_vehicle", "_coverage",
-               "_rest_acc", "_mag")
+               "_rest_acc", "_mag", "_div", "_magd")
+# added in schema /4: absent from a /3 checkpoint, and then started fresh (as /3 always did)
+ATTRS_V4 = ("_div", "_magd")
 
 
 def _float(v: float) -> Any:
@@ -128,8 +141,8 @@ def get_state(f: Any) -> dict[str, Any]:
 def check_schema(d: Any) -> str:
     """The checkpoint's schema; ValueError naming it unless it is one this version reads."""
     schema = d.get("schema") if isinstance(d, dict) else None
-    if schema not in (STATE_SCHEMA, SCHEMA_V2):
-        raise ValueError(f"not a UKF state (schema {schema!r}, expected {STATE_SCHEMA} or {SCHEMA_V2})")
+    if schema not in (STATE_SCHEMA, SCHEMA_V3, SCHEMA_V2):
+        raise ValueError(f"not a UKF state (schema {schema!r}, expected {STATE_SCHEMA}, {SCHEMA_V3} or {SCHEMA_V2})")
     return str(schema)
 
 
@@ -147,12 +160,51 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
         _set_state_v2(f, d)
         return
     st = d["state"]
-    missing = [a for a in STATE_ATTRS if a not in st]
+    if not isinstance(st, dict):
+        raise ValueError("UKF state: 'state' is not an object")
+    missing = [a for a in STATE_ATTRS if a not in st and not (schema == SCHEMA_V3 and a in ATTRS_V4)]
     if missing:
         raise ValueError(f"UKF state: {len(missing)} part(s) missing ({', '.join(missing[:4])})")
     f.x, f.P = np.asarray(d["x"], float).reshape(f.n), np.asarray(d["P"], float).reshape(f.n, f.n)
     for a in STATE_ATTRS:
-        setattr(f, a, decode(st[a]))
+        if a in st:
+            setattr(f, a, decode(st[a]))
+    check_parts(f)
+
+
+def _is_real(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def check_parts(f: Any) -> None:
+    """ValueError naming the field unless the divergence history and the disturbance gate of ``f`` are
+    what the filter writes: a DivergenceLog of finite, non-decreasing log times; a MagDisturbanceGate of
+    bools, counts ≥ 0 and times (``since``/``agreed_since`` NaN when unset, ``last_bad`` −inf when unset)."""
+    div, gate = f._div, f._magd
+    if type(div) is not DivergenceLog:
+        raise ValueError(f"UKF state: the divergence history is a {type(div).__name__}, not a DivergenceLog")
+    times = div.times
+    if not isinstance(times, list) or not all(_is_real(t) and math.isfinite(t) for t in times):
+        raise ValueError("UKF state: divergence times are not a list of finite numbers")
+    if any(b < a for a, b in zip(times, times[1:], strict=False)):
+        raise ValueError("UKF state: divergence times go backwards")
+    div.times = [float(t) for t in times]
+    if type(gate) is not MagDisturbanceGate:
+        raise ValueError(f"UKF state: the disturbance gate is a {type(gate).__name__}, not a MagDisturbanceGate")
+    for name in ("active", "armed"):
+        if type(getattr(gate, name)) is not bool:
+            raise ValueError(f"UKF state: disturbance gate field {name!r} is not true/false")
+    for name in ("excluded", "stretches"):
+        v = getattr(gate, name)
+        if type(v) is not int or v < 0:
+            raise ValueError(f"UKF state: disturbance gate field {name!r} is not a count")
+    for name in ("since", "agreed_since", "last_bad"):
+        v = getattr(gate, name)
+        if not _is_real(v) or (name == "last_bad" and v == math.inf) or (name != "last_bad" and math.isinf(v)):
+            raise ValueError(f"UKF state: disturbance gate field {name!r} is not a log time")
+        setattr(gate, name, float(v))
+    if gate.active and math.isnan(gate.since):
+        raise ValueError("UKF state: disturbance gate active without its start time")
 
 
 def _set_state_v2(f: Any, d: dict[str, Any]) -> None:

@@ -345,8 +345,18 @@ def fit_magnetometer(
         # Part of the sphere only: eq. 17 extrapolates, and the least-squares covariance does not cover
         # the extrapolation (a valley along the unseen directions). The MAP fit with the soft-iron prior
         # gives the answer and σ that keep the prior's width where the data say nothing (fit_norm_map).
-        w_map = sphere_bin_weights((x[good] - fit.o) @ fit.M.T, per_bin=30)
-        fit = fit_norm_map(x[good], *((o0, M0) if diverged else (fit.o, fit.M)), weights=w_map)
+        # from the algebraic start and (unless it slid off) from eq. 17's answer: the valley can hold a
+        # second, worse minimum; the one with the smaller raw-unit residual is kept
+        cands = []
+        for o_s, M_s in [(o0, M0)] + ([] if diverged else [(fit.o, fit.M)]):
+            try:
+                cands.append(fit_norm_map(x[good], o_s, M_s,
+                                          weights=sphere_bin_weights((x[good] - o_s) @ M_s.T, per_bin=30)))
+            except FitError:
+                continue
+        if not cands:
+            raise FitError("magnetometer: the prior-regularised ellipsoid fit found no answer")
+        fit = min(cands, key=lambda f: f.rms)
         Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
         M = Q @ fit.M
         res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0
@@ -515,3 +525,50 @@ def mag_to_accel_rotation(segs: list[Segmentation], acc: SensorCalibration, mag:
     ang = float(np.degrees(np.arccos(np.clip((np.trace(P) - 1) / 2, -1, 1))))
     return P, {"angle_deg": ang, "sigma_deg": sig, "dip_deg": float(np.degrees(np.arcsin(np.clip(c, -1, 1)))),
                "residual_rms": rms, "samples": int(a.shape[0]), "attitude_cells": int(k.sum())}
+
+
+def within_direction_spread(m: Array, cell_deg: float = 3.0, min_count: int = 5) -> tuple[float, float]:
+    """How much of a calibrated field's norm spread sits *at one direction*: the RMS deviation of ‖m‖ from
+    the mean of its direction cell (cells of ``cell_deg``, :func:`sphere_bin_weights`' grid; cells with at
+    least ``min_count`` samples), in % of the mean norm, and the share of samples in such cells.
+
+    The ellipsoid of eq. 17 changes the norm smoothly with the direction (a 10 % soft iron moves it by
+    under 0.3 % over 3°), so two samples in one cell whose norms differ by more than the noise saw different
+    fields: a disturbance near the sensor or a field that changed while the file was recorded — no
+    calibration of the sensor removes that part. m (N, 3) calibrated samples. Returns (%, share)."""
+    m = np.asarray(m, float).reshape(-1, 3)
+    n = np.linalg.norm(m, axis=1)
+    ok = np.isfinite(n) & (n > 0)
+    m, n = m[ok], n[ok]
+    if n.size == 0:
+        return float("nan"), 0.0
+    u = m / n[:, None]
+    lat = np.arcsin(np.clip(u[:, 2], -1.0, 1.0))
+    lon = np.arctan2(u[:, 1], u[:, 0])
+    step = np.radians(cell_deg)
+    ring = np.minimum(((lat + np.pi / 2) / step).astype(int), int(np.ceil(np.pi / step)) - 1)
+    n_lon = np.maximum(1, np.round(2 * np.pi * np.cos(-np.pi / 2 + (ring + 0.5) * step) / step)).astype(int)
+    col = np.minimum(((lon + np.pi) / (2 * np.pi) * n_lon).astype(int), n_lon - 1)
+    _, inv, cnt = np.unique(ring * 100000 + col, return_inverse=True, return_counts=True)
+    mean = np.bincount(inv, weights=n) / cnt
+    big = cnt[inv] >= min_count
+    if not big.any():
+        return float("nan"), 0.0
+    dev = (n - mean[inv])[big]
+    return float(100 * np.sqrt(np.mean(dev * dev)) / n.mean()), float(big.mean())
+
+
+def quasi_static_holds(acc: Array, gyro: Array, rate_hz: float, window_s: float = 1.0, acc_std_max: float = 0.5,
+                       rate_max: float = 0.5, stride: int = 10) -> Array:
+    """Mean specific force (K, 3) over the quasi-static holds of a hand-held log: windows of ``window_s``
+    whose accelerometer std (norm over the axes) is below ``acc_std_max`` m/s² and whose mean rate differs
+    from the log's median by less than ``rate_max`` rad/s (centripetal ω²r < 0.03 m/s² at a hand's 0.1 m);
+    every ``stride``-th window centre. acc, gyro (N, 3) raw, one time base at ``rate_hz``."""
+    w = max(5, int(round(window_s * rate_hz)))
+    if acc.shape[0] < w:
+        return np.zeros((0, 3))
+    am, sd = moving_std(np.asarray(acc, float), w)
+    gm, _ = moving_std(np.asarray(gyro, float), w)
+    q = (np.linalg.norm(sd, axis=1) < acc_std_max) & (np.linalg.norm(gm - np.median(gm, axis=0), axis=1) < rate_max)
+    out: Array = am[q][::stride]
+    return out

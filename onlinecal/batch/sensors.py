@@ -532,8 +532,9 @@ def within_direction_spread(m: Array, cell_deg: float = 3.0, min_count: int = 5)
     the mean of its direction cell (cells of ``cell_deg``, :func:`sphere_bin_weights`' grid; cells with at
     least ``min_count`` samples), in % of the mean norm, and the share of samples in such cells.
 
-    The ellipsoid of eq. 17 changes the norm smoothly with the direction (a 10 % soft iron moves it by
-    under 0.3 % over 3°), so two samples in one cell whose norms differ by more than the noise saw different
+    The ellipsoid of eq. 17 changes the norm smoothly with the direction: an error ε of one axis' scale
+    moves ‖m‖ by ε cos²θ, at most ε per radian, so within a 3° cell by at most 0.015 ε RMS (0.15 % for a
+    10 % error). Two samples in one cell whose norms differ by more than the noise saw different
     fields: a disturbance near the sensor or a field that changed while the file was recorded — no
     calibration of the sensor removes that part. m (N, 3) calibrated samples. Returns (%, share)."""
     m = np.asarray(m, float).reshape(-1, 3)

@@ -354,7 +354,7 @@ def filter_start(cal: Calibration, mag_raw: Any = None) -> tuple[Calibration, li
     the filter takes a start's σ as a diagonal covariance, and the band's valley is a correlation (the
     centre along the unseen direction against the scale along it); handed over, the replays of
     multirotor/fixed-wing seeds 0–1 ended degraded with terms 4.5–16σ off (accel gate rejections 12–20 %),
-    against ok and ≤ 1.7σ from the cold start. Returns (start, warnings)."""
+    against ok and ≤ 0.6σ from the cold start (docs/json.md). Returns (start, warnings)."""
     if cal.mag is None or mag_raw is None or np.size(mag_raw) == 0:
         return cal, []
     cov = _raw_coverage(cal.mag, mag_raw)

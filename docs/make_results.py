@@ -57,6 +57,200 @@ def table(head: list[str], rows: list[list]) -> str:
     return "\n".join(out)
 
 
+def issue11_magacc_section(cal, excluded: set[str]) -> tuple[list[str], dict]:
+    """Issue 11's magnetometer and accelerometer bars on MARG set 1, with the evidence for what is not met:
+    how much of each file's norm spread sits at one direction (no sensor calibration removes it), the
+    per-file field (norm and gravity–field angle), a shape fit with a per-file field norm (nuisance), the
+    `pan-y` ends matched by direction against the other files; and the accelerometer held out (fitted on
+    the moving files' quasi-static holds only, checked on the unmoved files' static norm)."""
+    from scipy.optimize import least_squares
+
+    from onlinecal.batch.ellipsoid import fit_norm_lm, sphere_bin_weights, sym_from_vec
+    from onlinecal.batch.sensors import quasi_static_holds, within_direction_spread
+
+    files = sorted(MARG.glob("*.csv"))
+    logs = {f.name: read_log(f) for f in files}
+    rows, figs = [], {}
+    for name, d in logs.items():
+        m = cal.mag.apply(d.mag)
+        n = np.linalg.norm(m, axis=1)
+        wd, share = within_direction_spread(m)
+        a = cal.accel.apply(d.acc)
+        am, sd = moving_std(a, 50)
+        qs = (np.linalg.norm(sd, axis=1) < 0.3) & (np.abs(np.linalg.norm(a, axis=1) - G0) < 0.3)
+        dip = float("nan")
+        if qs.sum() >= 10:
+            mi = np.column_stack([np.interp(d.t_imu[qs], d.t_mag, m[:, k]) for k in range(3)])
+            c = np.einsum("ij,ij->i", am[qs], mi) / np.linalg.norm(am[qs], axis=1) / np.linalg.norm(mi, axis=1)
+            dip = float(np.degrees(np.median(np.arccos(np.clip(c, -1, 1)))))
+        figs[name] = {"spread": float(100 * n.std() / n.mean()), "within": wd, "share": share,
+                      "median_norm": float(np.median(n)), "grav_field_deg": dip}
+    # the shape fit again, with one field norm per file (a nuisance parameter): shared ellipsoid, radius r_f
+    names = [k for k in logs if k not in excluded]
+    x = np.concatenate([logs[k].mag for k in names])
+    fid = np.concatenate([np.full(logs[k].n_mag, i) for i, k in enumerate(names)])
+    o0 = np.asarray(cal.mag.bias, float)
+    _, sv, Vt = np.linalg.svd(cal.mag.matrix)
+    M0 = Vt.T @ np.diag(sv) @ Vt  # the symmetric factor: ‖M0 (x − o)‖ = ‖M (x − o)‖
+    w = sphere_bin_weights((x - o0) @ M0.T, per_bin=30)
+    k = w > 0
+    xk, fk, sw = x[k], fid[k], np.sqrt(w[k])
+    iu = np.triu_indices(3)
+
+    def resid(p):
+        r = np.concatenate([[1.0], p[9:]])  # the first file's radius fixes the scale; renormalised below
+        return sw * (np.linalg.norm((xk - p[:3]) @ sym_from_vec(p[3:9]), axis=1) - r[fk])
+
+    sol = least_squares(resid, np.concatenate([o0, M0[iu], np.ones(len(names) - 1)]), method="lm")
+    r_f = np.concatenate([[1.0], sol.x[9:]])
+    Mr = sym_from_vec(sol.x[3:9]) / float(np.average(r_f, weights=np.bincount(fk, weights=w[k])))
+    for name in names:
+        nn = np.linalg.norm((logs[name].mag - sol.x[:3]) @ Mr, axis=1)
+        figs[name]["spread_perfile_r"] = float(100 * nn.std() / nn.mean())
+        figs[name]["r_f"] = float(np.median(nn))
+    moving = [k for k in logs if not k.startswith("unmoved")]
+    for name in logs:
+        f_ = figs[name]
+        rows.append([f"`{name}`", f"{f_['spread']:.2f}", f"{f_['within']:.2f} ({100 * f_['share']:.0f} %)",
+                     f"{f_['median_norm']:.3f}", f"{f_['grav_field_deg']:.1f}" if np.isfinite(f_["grav_field_deg"])
+                     else "–", f"{f_.get('r_f', float('nan')):.3f}" if "r_f" in f_ else "left out",
+                     f"{f_['spread_perfile_r']:.2f}" if "spread_perfile_r" in f_ else "–"])
+    pan = [k for k in moving if k.startswith("pan")]
+    pan_within = ", ".join(f"{figs[k]['within']:.2f}" for k in pan)
+    dr = [figs[k]["spread_perfile_r"] - figs[k]["spread"] for k in moving if "spread_perfile_r" in figs[k]]
+    met = [k for k in moving if figs[k]["spread"] <= 1.0]
+    met_r = [k for k in moving if figs[k].get("spread_perfile_r", 99) <= 1.0]
+    # pan-y: its lowest and highest norms, at nearly one direction, against the other files there
+    d = logs["pan-y-pointing-left.csv"]
+    m = cal.mag.apply(d.mag)
+    n = np.linalg.norm(m, axis=1)
+    u = m / n[:, None]
+    ends = []
+    for sel in (n < np.percentile(n, 15), n > np.percentile(n, 85)):
+        c = u[sel].mean(0)
+        ends.append((c / np.linalg.norm(c), float(np.median(n[sel]))))
+    sep = float(np.degrees(np.arccos(np.clip(ends[0][0] @ ends[1][0], -1, 1))))
+    pair = []  # each other file's reading at the high end's direction over the low end's (both within 5°)
+    for name, dd in logs.items():
+        if name == "pan-y-pointing-left.csv":
+            continue
+        mm = cal.mag.apply(dd.mag)
+        nn = np.linalg.norm(mm, axis=1)
+        near = [(mm / nn[:, None]) @ c > np.cos(np.radians(5)) for c, _ in ends]
+        if min(int(v.sum()) for v in near) >= 20:
+            pair.append(float(np.median(nn[near[1]]) / np.median(nn[near[0]]) - 1))
+    figs["pan-y-pointing-left.csv"]["ends"] = {"low": ends[0][1], "high": ends[1][1], "sep_deg": sep,
+                                               "others_ratio_minus_1": pair}
+    angles = [f_["grav_field_deg"] for k_, f_ in figs.items() if np.isfinite(f_["grav_field_deg"])]
+    rf = [f_["r_f"] for f_ in figs.values() if "r_f" in f_]
+    turns = [k for k in moving if not k.startswith("pan")]
+    excess = [figs[k]["spread"] - 1.0 for k in turns] + [0.0]
+    within_tr = [figs[k]["within"] for k in turns]
+    # the pooled fit's own choices varied (weighting, cells, outlier rule, the per-file field check)
+    def var_spreads(xv, **kw):
+        fv = fit_norm_lm(xv, 1.0, o0, M0, **kw)
+        nv = [np.linalg.norm((logs[k].mag - fv.o) @ fv.M.T, axis=1) for k in moving]
+        return [float(100 * v.std() / v.mean()) for v in nv]
+
+    x_all = np.concatenate([logs[k_].mag for k_ in logs])
+    u0 = (x - o0) @ M0.T
+    variants = [
+        ("as the batch: 10° cells, ≤ 30 samples each, 5-MAD outliers, field check",
+         dict(weights=sphere_bin_weights(u0, per_bin=30))),
+        ("unweighted", {}),
+        ("5° cells", dict(weights=sphere_bin_weights(u0, cell_deg=5.0, per_bin=30))),
+        ("20° cells", dict(weights=sphere_bin_weights(u0, cell_deg=20.0, per_bin=30))),
+        ("1/count weights, no cap", dict(weights=sphere_bin_weights(u0))),
+        ("no outlier rule", dict(weights=sphere_bin_weights(u0, per_bin=30), rounds=0)),
+        ("outliers at 3 MAD", dict(weights=sphere_bin_weights(u0, per_bin=30), reject_sigma=3.0)),
+    ]
+    var_rows = []
+    for label, kw in variants:
+        sp = var_spreads(x, **kw)
+        var_rows.append([label, f"{sum(v <= 1.0 for v in sp)} of {len(moving)}", f"{min(sp):.2f}–{max(sp):.2f}",
+                         f"{max(sp[moving.index(k_)] for k_ in moving if k_.startswith('pan')):.2f}"])
+    sp = var_spreads(x_all, weights=sphere_bin_weights((x_all - o0) @ M0.T, per_bin=30))
+    var_rows.append(["field check off (all 15 files)", f"{sum(v <= 1.0 for v in sp)} of {len(moving)}",
+                     f"{min(sp):.2f}–{max(sp):.2f}",
+                     f"{max(sp[moving.index(k_)] for k_ in moving if k_.startswith('pan')):.2f}"])
+    xs_ = logs["tilt-sphere.csv"].mag
+    fs_ = fit_norm_lm(xs_, 1.0, o0, M0, weights=sphere_bin_weights((xs_ - o0) @ M0.T, per_bin=30))
+    ns_ = np.linalg.norm((xs_ - fs_.o) @ fs_.M.T, axis=1)
+    own_sphere = float(100 * ns_.std() / ns_.mean())
+    # accelerometer held out: fitted on the moving files' quasi-static holds only
+    holds = np.concatenate([quasi_static_holds(logs[k].acc, logs[k].gyro, logs[k].imu_rate) for k in moving])
+    wa = sphere_bin_weights(holds, per_bin=20)
+    ka = wa > 0
+    fa = fit_norm_lm(holds[ka], G0, np.zeros(3), np.eye(3) * G0 / np.linalg.norm(holds, axis=1).mean(),
+                     model="diag", weights=wa[ka])
+    acc_rows = []
+    for name in sorted(k for k in logs if k.startswith("unmoved")):
+        dd = logs[name]
+        held = float(100 * (np.linalg.norm(((dd.acc - fa.o) @ fa.M.T).mean(0)) / G0 - 1))
+        raw = float(100 * (np.linalg.norm(dd.acc.mean(0)) / G0 - 1))
+        figs[name]["acc_heldout_pct"] = held
+        acc_rows.append([f"`{name}`", f"{raw:+.3f}", f"{held:+.3f}",
+                         f"{figs[name]['median_norm']:.3f}"])
+    L = ["### Magnetometer and accelerometer bars: the evidence", "",
+         "Per file, with the batch's calibration (all 15 files): *spread* = std/mean of the calibrated ‖m‖; "
+         "*at one direction* = the RMS deviation of ‖m‖ from the mean of its 3° direction cell "
+         "(`batch.sensors.within_direction_spread`; in brackets the share of samples in cells of ≥ 5): an "
+         "error ε of one axis' scale moves the norm by ε cos²θ, within a 3° cell by at most 0.015 ε RMS (0.15 % "
+         "for a 10 % error), so this part is a field that changed at the sensor, "
+         "which no calibration of the sensor removes; the sensor's own noise is ≈ 0.3 % (the unmoved files). "
+         "*median ‖m‖* shows the file's field against the pooled one; *gravity–field angle* the median angle "
+         "between calibrated gravity and field at quasi-static samples (one place, one uniform field: one angle). "
+         "*r_f* and *spread, per-file norm*: the shape fit again with one field norm per file as a nuisance "
+         "parameter (shared ellipsoid, weighted by attitude bins as the batch is).", "",
+         table(["file", "spread %", "at one direction %", "median ‖m‖", "gravity–field angle °", "r_f",
+                "spread, per-file norm %"], rows), "",
+         f"Bar ≤ 1 % met on {len(met)} of {len(moving)} moving files with the batch "
+         f"({', '.join(f'`{k}`' for k in met)}); with a per-file field norm on {len(met_r)} of {len(moving)}. "
+         "Why not on the others, by the columns above:", "",
+         f"* **The pans carry a changing field** (local disturbance): on {', '.join(f'`{k}`' for k in pan)} "
+         f"{pan_within} % "
+         "RMS sits *at one direction* (noise ≈ 0.3 %). In `pan-y-pointing-left` the 15 % lowest norms "
+         f"(median {ends[0][1]:.3f}) and the 15 % highest ({ends[1][1]:.3f}) lie {sep:.1f}° apart in the sensor "
+         f"frame; each of the {len(pair)} other files that saw both directions (within 5°) reads them within "
+         f"{100 * max(abs(v) for v in pair):.1f} % of each other, with the same calibration: a "
+         f"{100 * (ends[1][1] / ends[0][1] - 1):.0f} % change over {sep:.0f}° (an ellipsoid would need an axis "
+         f"error of {100 * (ends[1][1] / ends[0][1] - 1) / np.radians(sep):.0f} % for it) that no ellipsoid "
+         "(hard or soft iron, pooled or per file) makes. The field at the sensor changed between the two ends "
+         "of each pan (the board moved near a magnetic object, or a source nearby changed): a local disturbance, "
+         "not a calibration error.",
+         "* **The files see different fields** (per-file field strength): the per-file field norms *r_f* span "
+         f"{min(rf):.3f}–{max(rf):.3f} (and `unmoved-x-pointing-up` "
+         f"{figs['unmoved-x-pointing-up.csv']['median_norm']:.3f}, "
+         f"left out by the batch's per-file field check), and the gravity–field angle spans {min(angles):.1f}–"
+         f"{max(angles):.1f}° between files (one uniform field would give one angle): the recordings were "
+         "made in different places or next to different objects. A per-file field norm is a legitimate nuisance "
+         f"parameter of the shape fit; it moves the per-file spreads by {min(dr):+.2f} to {max(dr):+.2f} % and "
+         "meets the bar on "
+         f"{len(met_r)} files against {len(met)} — not enough to make it the default, and it cannot touch the part "
+         "at one direction.",
+         f"* **The tilts and turns** exceed 1 % by up to {max(excess):.2f} % while their part at one direction is "
+         f"{min(within_tr):.2f}–{max(within_tr):.2f} % (noise ≈ 0.3 %): "
+         "that part depends on the direction, i.e. on the shape, and the files disagree on the shape (the fit to "
+         "`tilt-sphere` alone improves some files and worsens others: *Magnetometer norm spread* below): "
+         "consistent with a field that differs from file to file and over the space the hand sweeps. "
+         f"`tilt-sphere`, which sees every direction, keeps {own_sphere:.2f} % even with its own ellipsoid "
+         "(fitted to it alone), against the sensor's 0.3 % noise: its field is not one field either.", "",
+         "The pooled fit's own choices do not decide it (eq. 17 refitted from the batch's answer on the same "
+         "samples, each choice varied alone):", "",
+         table(["pooled fit", "moving files ≤ 1 %", "spread range %", "worst pan %"], var_rows), "",
+         "**Accelerometer, held out.** Fitted (bias + per-axis scale, eq. 32, attitude-binned) on the "
+         f"quasi-static holds of the 12 moving files only ({holds.shape[0]} one-second holds, {int(ka.sum())} "
+         f"attitude cells; accel std < 0.5 m/s², rate within 0.5 rad/s of the median), and applied to the three "
+         "unmoved files, which the fit never saw (bar: within 0.5 % of g on the files whose field and gravity are "
+         "consistent):", "",
+         table(["file", "raw ‖mean a‖/g − 1 %", "held-out calibrated ‖mean a‖/g − 1 %", "median ‖m‖ (field)"],
+               acc_rows), "",
+         f"The held-out fit: bias {vec(fa.o)} m/s², scales {vec(np.diag(fa.M))}; its σ of the bias "
+         f"{vec(np.sqrt(np.diag(fa.cov)[:3]))} m/s² (x is the least seen axis). The batch's own static fit "
+         "(three attitudes, three bias unknowns) is exact by construction; this is the check that counts.", ""]
+    return L, figs
+
+
 def short(path: str) -> str:
     return Path(path).name
 
@@ -696,13 +890,17 @@ def issue11_section() -> tuple[list[str], dict]:
     cal.save(tmp)
     cj = json.loads(tmp.read_text())
     tmp.unlink()
+    excluded = {Path(w.split(": ")[1]).name for w in res.steps["mag"].warnings
+                if "left out of the magnetometer fit" in w}
+    L2, mfigs = issue11_magacc_section(cal, excluded)
     rows, after = [], {}
     for f in files:
         d = read_log(f)
         n = np.linalg.norm(cal.mag.apply(d.mag), axis=1)
         r = {"mag_spread_pct": float(100 * n.std() / n.mean())}
         if f.name.startswith("unmoved"):
-            r["static_acc_norm_err_pct"] = float(100 * (np.linalg.norm(cal.accel.apply(d.acc).mean(0)) / G0 - 1))
+            # held out: the accelerometer fitted on the moving files' holds only (issue11_magacc_section)
+            r["static_acc_norm_err_pct"] = mfigs[f.name]["acc_heldout_pct"]
         else:
             r["closure_deg"], r["turned_deg"] = gc.closure(gc.read_csv(str(f)), cj)
         after[f.name] = r
@@ -725,7 +923,7 @@ def issue11_section() -> tuple[list[str], dict]:
          "(`gyro.fit_gyro_kinematic`) uses only 0.5-s spans of the magnetometer direction (v' = v × ω), never "
          "the end-to-end attitudes. *Before*: commit 8429a95, same tool, same files.", "",
          table(["file", "turned °", "closure ° before", "closure ° now", "mag spread % before",
-                "mag spread % now", "static ‖a‖/g − 1 %"], rows), "",
+                "mag spread % now", "static ‖a‖/g − 1 %, held out"], rows), "",
          f"Closure over the 12 moving files: median {np.median(cb):.1f}° → **{np.median(ca):.1f}°**, max "
          f"{max(cb):.1f}° → **{max(ca):.1f}°** (issue bar: median ≤ 3°, max ≤ 8° — **not met**). Calibrated mag "
          f"spread on the moving files: {min(mv):.2f}–{max(mv):.2f} % (bar ≤ 1 % on every file — met on "
@@ -737,13 +935,14 @@ def issue11_section() -> tuple[list[str], dict]:
          f"{rot.get('angle_deg', float('nan')):.1f}° (σ {rot.get('sigma_deg', float('nan')):.2f}°) onto the "
          "accelerometer's from the constant gravity–field angle (the HMC5883L sits 90° about x against the "
          "MPU6050); burst-read stamps replaced by a fitted clock on every file.", "",
-         "Why the bars are not met, with the evidence in this table: (1) the static accelerometer norm is exact "
-         "by construction (three attitudes, three bias unknowns) and says nothing; (2) the per-file mean field "
-         "differs by up to ±3 % between files (another place or a nearby object per recording), and within "
-         "`pan-y-pointing-left` the norm alternates 0.965 ↔ 1.02 between the two ends of each pan (a shape "
-         "or a local disturbance that no single ellipsoid removes); (3) the gyro closure: the next subsection "
+         "Why the bars are not met, with the evidence in the tables below: (1) the static accelerometer column is "
+         "held out (an accelerometer fitted on the moving files' quasi-static holds only, applied to the unmoved "
+         "files; the batch's own three-attitude fit is exact by construction and says nothing); (2) the "
+         "magnetometer: the pans carry a field that changes at one sensor direction (a local disturbance), and "
+         "the files see different fields (per-file field strength and gravity–field angle); *Magnetometer and "
+         "accelerometer bars: the evidence*; (3) the gyro closure: the next subsection "
          "(the bias per recording, the clipped gyro on `tilt-sphere`, the clock of the ≈ 2 ms set-up).", ""]
-    return L, {"closure_median": float(np.median(ca)), "closure_max": float(max(ca))}
+    return L + L2, {"closure_median": float(np.median(ca)), "closure_max": float(max(ca)), "magacc": mfigs}
 
 
 def imutk_section() -> list[str]:

@@ -299,3 +299,133 @@ def sphere_bin_weights(u: Array, cell_deg: float = 10.0, per_bin: int | None = N
         nk = np.bincount(inv, weights=kept.astype(float))
         w = np.where(kept, 1.0 / np.maximum(nk[inv], 1.0), 0.0)
     return w
+
+
+# Prior on the magnetometer's soft iron where the samples do not determine it (a band of directions):
+# M = m̄ (I + E), E symmetric, each diagonal entry of E with σ SOFT_DIAG_SIGMA and each off-diagonal with
+# σ SOFT_OFF_SIGMA; m̄ = tr(M)/3 (1 / the field in raw units) and the centre o free. The same σ the online
+# filter gives its own sphere fit's scale and non-orthogonality (UKFConfig.mag_fit_sigma: 0.15, 0.035): a
+# real compass's axis gains agree within ±10–15 % and its axes are orthogonal within a few degrees.
+SOFT_DIAG_SIGMA = 0.15
+SOFT_OFF_SIGMA = 0.035
+
+
+def _soft_iron_prior(p: Array, sig_diag: float, sig_off: float) -> tuple[Array, Array]:
+    """Prior residuals (6,) of the soft iron in σ units — (M_jj / m̄ − 1) / σ_diag and M_jk / m̄ / σ_off for
+    the upper triangle (j, k) of M, m̄ = tr(M)/3 — and their Jacobian (6, 9) in p = (o, upper triangle of M)."""
+    Mv = p[3:]
+    diag = _JJ == _KK
+    mbar = float(Mv[diag].sum() / 3.0)
+    sig = np.where(diag, sig_diag, sig_off)
+    ratio = Mv / mbar
+    r = (ratio - diag.astype(float)) / sig
+    J = np.zeros((6, 9))
+    # ∂(M_i / m̄)/∂M_l = δ_il / m̄ − M_i / (3 m̄²) [l on the diagonal]
+    J[:, 3:] = (np.eye(6) / mbar - np.outer(Mv, diag.astype(float)) / (3 * mbar * mbar)) / sig[:, None]
+    return r, J
+
+
+def fit_norm_map(x: Array, o0: Array, M0: Array, weights: Array | None = None,
+                 sig_diag: float = SOFT_DIAG_SIGMA, sig_off: float = SOFT_OFF_SIGMA,
+                 max_iter: int = 200, rounds: int = 6) -> NormFit:
+    """Eq. 17 (‖M (x − o)‖ = 1, full model) as a maximum a-posteriori fit with a prior on the soft iron
+    (:func:`_soft_iron_prior`: M near a multiple of the identity, diagonal σ ``sig_diag`` relative,
+    off-diagonal ``sig_off``), for samples that see the field over part of the sphere only.
+
+    Two departures from :func:`fit_norm_lm`, both for a band of directions (a flight's yaw turns with
+    small tilts), where eq. 17's least squares have a valley — the centre along the unseen direction
+    trades against the size and the scale along it:
+
+    * the residual is the distance to the ellipsoid in the **raw** unit, to first order
+      (‖M (x − o)‖ − 1) / ‖Mᵀ n‖ with n = M (x − o)/‖M (x − o)‖ (the gradient's norm, recomputed each
+      round and held within one): the calibrated-unit residual shrinks with M itself, so along the valley
+      its least squares slide to a larger ellipsoid (10-min flights: scale 27–66 % low, bias 7–14σ off);
+    * the posterior covariance (JᵀWJ/s² + J_pᵀJ_p)⁻¹ keeps the prior's width along the directions the data
+      leave free and carries it into the centre through their correlation: σ that cover the extrapolation.
+
+    Where the directions span the sphere the data outweigh the prior a millionfold. s² (one sample's
+    residual variance) comes from the fit's own residuals with the effective sample count (Σw)²/Σw², as
+    :func:`fit_norm_lm` does. x (N, 3) raw samples (outliers already removed), ``weights`` (N,) ≥ 0
+    (attitude bins); (o0 (3,), M0 (3, 3) symmetric) the start. Returns :class:`NormFit` (``rms`` in the raw
+    unit) with the posterior covariance of (o, upper triangle of M).
+    """
+    x = np.asarray(x, float)
+    wt = np.ones(x.shape[0]) if weights is None else np.asarray(weights, float)
+    keep = wt > 0
+    x, wt = x[keep], wt[keep]
+    if x.shape[0] < 9:
+        raise FitError(f"norm fit (map) needs ≥ 9 points, got {x.shape[0]}")
+    n_eff = float(wt.sum() ** 2 / (wt @ wt))
+    c = wt / wt.sum() * n_eff  # each sample's share of the effective count
+    p = np.concatenate([np.asarray(o0, float), 0.5 * (M0 + M0.T)[_IU]])
+
+    def geo(q: Array) -> Array:
+        """(‖M (x − o)‖ − 1) / ‖Mᵀ n‖: the first-order distance to the ellipsoid in the raw unit."""
+        M = sym_from_vec(q[3:])
+        y = (x - q[:3]) @ M
+        ny = np.linalg.norm(y, axis=1)
+        g = np.linalg.norm((y / ny[:, None]) @ M, axis=1)
+        out: Array = (ny - 1.0) / g
+        return out
+
+    def geo_jac(q: Array) -> tuple[Array, Array]:
+        # the distance and its Jacobian (N, 9) by central differences: the gradient's norm moves with
+        # (o, M) too, and holding it fixed within a step brings back the slide to a larger ellipsoid
+        r0 = geo(q)
+        J = np.empty((x.shape[0], 9))
+        for k in range(9):
+            h = 1e-6 * max(abs(float(q[k])), float(np.abs(q[3:]).max()) * 1e-2)
+            dq = np.zeros(9)
+            dq[k] = h
+            J[:, k] = (geo(q + dq) - geo(q - dq)) / (2 * h)
+        return r0, J
+
+    def s2_at(q: Array) -> float:
+        res = geo(q)
+        return max(float(c @ (res * res)) / max(1.0, n_eff - 9.0), 1e-300)
+
+    s2 = s2_at(p)
+    for _ in range(rounds):  # s² at the current answer, which depends on it (mildly)
+        sw = np.sqrt(c / s2)
+
+        def fun(q: Array, sw: Array = sw) -> tuple[Array, Array]:
+            res, J = geo_jac(q)
+            rp, Jp = _soft_iron_prior(q, sig_diag, sig_off)
+            return np.concatenate([sw * res, rp]), np.vstack([J * sw[:, None], Jp])
+
+        p = levenberg_marquardt(fun, p, max_iter)
+        s2_new = s2_at(p)
+        done = abs(s2_new / s2 - 1.0) < 0.01
+        s2 = s2_new
+        if done:
+            break
+    sw = np.sqrt(c / s2)
+    res, J = geo_jac(p)
+    _, Jp = _soft_iron_prior(p, sig_diag, sig_off)
+    info = (J * sw[:, None]).T @ (J * sw[:, None]) + Jp.T @ Jp
+    try:
+        cov: Array = np.asarray(np.linalg.inv(info), float)
+    except np.linalg.LinAlgError:
+        cov = np.full((9, 9), np.inf)
+    rms = float(np.sqrt(np.average(res**2, weights=wt)))
+    return NormFit(p[:3].copy(), sym_from_vec(p[3:]), cov, rms, keep, 9)
+
+
+def soft_iron_prior_sigma(M: Array, Q: Array, rng: np.random.Generator, sig_diag: float = SOFT_DIAG_SIGMA,
+                          sig_off: float = SOFT_OFF_SIGMA, n: int = 256) -> dict[str, Array]:
+    """1σ of the decomposed scale (absolute, raw⁻¹ unit) and ξ (rad) of ``Q · M'`` that the soft-iron prior
+    alone allows around the symmetric M (3, 3): Monte Carlo over M' = M + m̄ E, E drawn from the prior
+    (m̄ = tr(M)/3), Q (3, 3) the alignment. The reference for "not determined by the data" (posterior σ
+    above half of it)."""
+    from .decomp import decompose_many
+
+    mbar = float(np.trace(M) / 3.0)
+    E = np.zeros((n, 3, 3))
+    d = rng.normal(0.0, sig_diag, (n, 3))
+    off = rng.normal(0.0, sig_off, (n, 3))
+    E[:, [0, 1, 2], [0, 1, 2]] = d
+    for k, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
+        E[:, i, j] = E[:, j, i] = off[:, k]
+    par, ok = decompose_many(Q[None] @ (M[None] + mbar * E))
+    sd = par[ok].std(axis=0)
+    return {"scale": sd[0:3], "xi": sd[6:9]}

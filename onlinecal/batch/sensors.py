@@ -11,7 +11,18 @@ from numpy.typing import NDArray
 from ..model import SensorCalibration
 from .align import phase_plane_normal, rotation_to_axes
 from .decomp import decompose_many
-from .ellipsoid import FitError, NormFit, fit_ellipsoid_svd, fit_norm_lm, sphere_bin_weights, sqrtm_spd
+from .ellipsoid import (
+    SOFT_DIAG_SIGMA,
+    SOFT_OFF_SIGMA,
+    FitError,
+    NormFit,
+    fit_ellipsoid_svd,
+    fit_norm_lm,
+    fit_norm_map,
+    soft_iron_prior_sigma,
+    sphere_bin_weights,
+    sqrtm_spd,
+)
 from .segment import Phase, Segmentation, moving_std
 
 Array = NDArray[np.float64]
@@ -291,8 +302,8 @@ def fit_magnetometer(
         rep.figures["degenerate"] = True
         rep.warnings.append("mag: the field was seen from a band of directions only (no full tumble): the geometric "
                             "fit (eq. 17) is not determined and left the algebraic fit's answer by a field-sized "
-                            "step; the algebraic fit (eqs. 19-24) is kept and no later step uses the magnetometer "
-                            "as a direction reference")
+                            "step; the algebraic fit (eqs. 19-24) starts a fit with a prior on the soft iron "
+                            "instead, and no later step uses the magnetometer as a direction reference")
     Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
     M = Q @ fit.M
     res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0
@@ -329,15 +340,30 @@ def fit_magnetometer(
     wu = sphere_bin_weights(u, per_bin=5)
     cover = float(np.linalg.eigvalsh((u * wu[:, None]).T @ u / wu.sum())[0])
     rep.figures["coverage_min_eig"] = cover
-    if cover < MIN_COVERAGE and not diverged:
-        rep.figures["partial_coverage"] = True
-        rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | {"scale", "alpha", "xi"})
-        rep.warnings.append(f"mag: the field was seen over part of the sphere only (coverage {cover:.2f}, a full "
-                            f"tumble gives 0.3; need {MIN_COVERAGE}): its scale, alignment and non-orthogonality "
-                            "are not determined (σ absent) and no later step uses it as a direction reference; "
-                            "turn the unit through all orientations")
-    if diverged:
-        rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | {"scale", "alpha", "xi"})
+    prior_fit = cover < MIN_COVERAGE or diverged
+    if prior_fit:
+        # Part of the sphere only: eq. 17 extrapolates, and the least-squares covariance does not cover
+        # the extrapolation (a valley along the unseen directions). The MAP fit with the soft-iron prior
+        # gives the answer and σ that keep the prior's width where the data say nothing (fit_norm_map).
+        # from the algebraic start and (unless it slid off) from eq. 17's answer: the valley can hold a
+        # second, worse minimum; the one with the smaller raw-unit residual is kept
+        cands = []
+        for o_s, M_s in [(o0, M0)] + ([] if diverged else [(fit.o, fit.M)]):
+            try:
+                cands.append(fit_norm_map(x[good], o_s, M_s,
+                                          weights=sphere_bin_weights((x[good] - o_s) @ M_s.T, per_bin=30)))
+            except FitError:
+                continue
+        if not cands:
+            raise FitError("magnetometer: the prior-regularised ellipsoid fit found no answer")
+        fit = min(cands, key=lambda f: f.rms)
+        Q, sig_a = _align(segs, _mag_samples, fit.M, fit.o, 0.2, rep)
+        M = Q @ fit.M
+        res = np.linalg.norm((x - fit.o) @ M.T, axis=1) - 1.0
+        norms = res[good] + 1.0
+        rep.figures["partial_coverage"] = cover < MIN_COVERAGE
+        rep.figures["sigma_source"] = "soft-iron prior"
+        rep.figures["soft_iron_prior"] = {"diag_rel": SOFT_DIAG_SIGMA, "offdiag_rel": SOFT_OFF_SIGMA}
     rep.figures.update({
         "samples": int(x.shape[0]),
         "fit_samples": int((w > 0).sum()),
@@ -349,8 +375,41 @@ def fit_magnetometer(
                                       / np.linalg.norm(x - x.mean(0), axis=1).mean()),
         "svd_vs_lm_bias": float(np.linalg.norm(o0 - fit.o)),
     })
-    sig = propagate_sigma(fit.o, fit.M, fit.cov, Q, sig_a, rng)
+    sig = propagate_sigma(fit.o, fit.M, fit.cov, Q, sig_a, rng, n=256 if prior_fit else 64)
+    if prior_fit:
+        und = _prior_undetermined(sig, fit.M, Q, rng)
+        if "alpha" in rep.figures.get("undetermined", []):
+            # ξ (eq. 6: x the reference axis, y in the xy plane) depends on the frame the matrix is expressed
+            # in: without T_R the symmetric fit's ξ is that of another frame (flights: 6–42σ from the truth's)
+            und = [u for u in und if not u.startswith("xi")] + ["xi"]
+        rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | set(und))
+        rep.warnings.append(
+            f"mag: the field was seen over part of the sphere only (coverage {cover:.2f}, a full tumble gives 0.3; "
+            f"need {MIN_COVERAGE}): the ellipsoid (eq. 17) is extrapolated with a prior on the soft iron (axis gains "
+            f"within {100 * SOFT_DIAG_SIGMA:.0f} %, cross terms {100 * SOFT_OFF_SIGMA:.1f} %), whose width its σ "
+            "keep along the unseen directions"
+            + (f"; not determined by the data (σ above half the prior's): {', '.join('mag.' + u for u in und)}"
+               if und else "")
+            + "; no later step uses it as a direction reference; turn the unit through all orientations")
     return SensorCalibration(fit.o, M, sig), rep
+
+
+def _prior_undetermined(sig: dict[str, list[float]], Ms: Array, Q: Array, rng: np.random.Generator) -> list[str]:
+    """Axis terms of a prior-regularised magnetometer fit (:func:`fit_norm_map`) that the data did not
+    determine: posterior σ above :data:`~onlinecal.health.UNDETERMINED_RATIO` (½) of the prior's own σ
+    (:func:`soft_iron_prior_sigma` for scale and ξ; for the bias the online filter's cold prior, 0.6 field)."""
+    prior = soft_iron_prior_sigma(Ms, Q, rng)
+    mbar = float(np.trace(Ms) / 3.0)
+    prior["bias"] = np.full(3, 0.6 / mbar)
+    out = []
+    for p in ("bias", "scale", "xi"):
+        if p not in sig:
+            out.append(p)
+            continue
+        for i, a in enumerate("xyz"):
+            if not float(sig[p][i]) <= 0.5 * float(prior[p][i]):
+                out.append(f"{p}.{a}")
+    return out
 
 
 def static_means(segs: list[Segmentation]) -> tuple[Array, Array]:
@@ -466,3 +525,51 @@ def mag_to_accel_rotation(segs: list[Segmentation], acc: SensorCalibration, mag:
     ang = float(np.degrees(np.arccos(np.clip((np.trace(P) - 1) / 2, -1, 1))))
     return P, {"angle_deg": ang, "sigma_deg": sig, "dip_deg": float(np.degrees(np.arcsin(np.clip(c, -1, 1)))),
                "residual_rms": rms, "samples": int(a.shape[0]), "attitude_cells": int(k.sum())}
+
+
+def within_direction_spread(m: Array, cell_deg: float = 3.0, min_count: int = 5) -> tuple[float, float]:
+    """How much of a calibrated field's norm spread sits *at one direction*: the RMS deviation of ‖m‖ from
+    the mean of its direction cell (cells of ``cell_deg``, :func:`sphere_bin_weights`' grid; cells with at
+    least ``min_count`` samples), in % of the mean norm, and the share of samples in such cells.
+
+    The ellipsoid of eq. 17 changes the norm smoothly with the direction: an error ε of one axis' scale
+    moves ‖m‖ by ε cos²θ, at most ε per radian, so within a 3° cell by at most 0.015 ε RMS (0.15 % for a
+    10 % error). Two samples in one cell whose norms differ by more than the noise saw different
+    fields: a disturbance near the sensor or a field that changed while the file was recorded — no
+    calibration of the sensor removes that part. m (N, 3) calibrated samples. Returns (%, share)."""
+    m = np.asarray(m, float).reshape(-1, 3)
+    n = np.linalg.norm(m, axis=1)
+    ok = np.isfinite(n) & (n > 0)
+    m, n = m[ok], n[ok]
+    if n.size == 0:
+        return float("nan"), 0.0
+    u = m / n[:, None]
+    lat = np.arcsin(np.clip(u[:, 2], -1.0, 1.0))
+    lon = np.arctan2(u[:, 1], u[:, 0])
+    step = np.radians(cell_deg)
+    ring = np.minimum(((lat + np.pi / 2) / step).astype(int), int(np.ceil(np.pi / step)) - 1)
+    n_lon = np.maximum(1, np.round(2 * np.pi * np.cos(-np.pi / 2 + (ring + 0.5) * step) / step)).astype(int)
+    col = np.minimum(((lon + np.pi) / (2 * np.pi) * n_lon).astype(int), n_lon - 1)
+    _, inv, cnt = np.unique(ring * 100000 + col, return_inverse=True, return_counts=True)
+    mean = np.bincount(inv, weights=n) / cnt
+    big = cnt[inv] >= min_count
+    if not big.any():
+        return float("nan"), 0.0
+    dev = (n - mean[inv])[big]
+    return float(100 * np.sqrt(np.mean(dev * dev)) / n.mean()), float(big.mean())
+
+
+def quasi_static_holds(acc: Array, gyro: Array, rate_hz: float, window_s: float = 1.0, acc_std_max: float = 0.5,
+                       rate_max: float = 0.5, stride: int = 10) -> Array:
+    """Mean specific force (K, 3) over the quasi-static holds of a hand-held log: windows of ``window_s``
+    whose accelerometer std (norm over the axes) is below ``acc_std_max`` m/s² and whose mean rate differs
+    from the log's median by less than ``rate_max`` rad/s (centripetal ω²r < 0.03 m/s² at a hand's 0.1 m);
+    every ``stride``-th window centre. acc, gyro (N, 3) raw, one time base at ``rate_hz``."""
+    w = max(5, int(round(window_s * rate_hz)))
+    if acc.shape[0] < w:
+        return np.zeros((0, 3))
+    am, sd = moving_std(np.asarray(acc, float), w)
+    gm, _ = moving_std(np.asarray(gyro, float), w)
+    q = (np.linalg.norm(sd, axis=1) < acc_std_max) & (np.linalg.norm(gm - np.median(gm, axis=0), axis=1) < rate_max)
+    out: Array = am[q][::stride]
+    return out

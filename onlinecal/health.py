@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from .model import SENSORS, Calibration
+from .specs import rail_samples
 
 HEALTH_SCHEMA = "onlinecal.health/1"
 VERDICTS = ("ok", "degraded", "failed")
@@ -68,7 +69,6 @@ NIS_MIN_WINDOWS = 3  # for the degraded band; one window far above 10 d already 
 GATE_DEGRADED = 0.10  # share of a sensor's updates rejected by the filter's gate
 GATE_FAILED = 0.40
 RAIL_MIN = {"gyro": 1.0, "accel": 19.6}  # rad/s, m/s²: no rail is below (250 °/s gyros, 2 g accels)
-RAIL_SAMPLES = 10  # samples at an axis' largest magnitude that make it a rail, not a peak
 UNDETERMINED_RATIO = 0.5  # posterior σ / prior σ above this: the data did not determine the term
 COVERAGE_MIN = 0.4
 # gravity at rest: blocks of REST_BLOCK samples whose calibrated gyro is below REST_RATE rad/s (mean and
@@ -205,7 +205,7 @@ def _gate_check(sensor: str, st: dict[str, Any]) -> tuple[str, str] | None:
 
 def rail_checks(raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, int]]:
     """Saturation seen in the raw samples (``raw``: sensor → (N, 3)): an axis whose largest magnitude,
-    above :data:`RAIL_MIN`, recurs in at least :data:`RAIL_SAMPLES` samples is at its rail (a true peak is
+    above :data:`RAIL_MIN`, recurs in at least :data:`onlinecal.specs.RAIL_SAMPLES` samples is at its rail (a true peak is
     reached once) → degraded, whether or not the filter raised an event."""
     out: list[tuple[str, str]] = []
     counts: dict[str, int] = {}
@@ -216,9 +216,7 @@ def rail_checks(raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict
         a = np.where(np.isfinite(a), a, 0.0)
         if a.shape[0] == 0:
             continue
-        top = a.max(axis=0)
-        at = (a >= top * (1 - 1e-9)) & (top > RAIL_MIN[s])
-        rail = at.sum(axis=0) >= RAIL_SAMPLES  # axes pinned at their largest magnitude, not a lone peak
+        top, at, rail = rail_samples(a, RAIL_MIN[s])
         n = int(at[:, rail].any(axis=1).sum()) if rail.any() else 0
         if n:
             counts[s] = n

@@ -40,3 +40,17 @@ MAG_SPEC = SensorSpec(density=0.0, lsb=0.0003, full_scale=4.0, floor=0.0006)
 SPECS = {"gyro": GYRO_SPEC, "accel": ACCEL_SPEC, "mag": MAG_SPEC}
 
 __all__ = ["ACCEL_SPEC", "FIELD_DIP_DEG", "FIELD_GAUSS", "G0", "GYRO_SPEC", "MAG_SPEC", "SPECS", "SensorSpec"]
+
+
+RAIL_SAMPLES = 10  # samples at an axis' largest magnitude that make it a rail, not a peak (reached once)
+RAIL_TOL = 1e-3  # relative: the two rails of a two's-complement ADC differ by one count (−32768 vs 32767)
+
+
+def rail_samples(x_abs: np.ndarray, rail_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Clipped readings of one sensor from its magnitudes ``x_abs`` (N, 3) (|raw|, finite): an axis whose
+    largest magnitude exceeds ``rail_min`` (no rail lies below it) and recurs, within :data:`RAIL_TOL`,
+    in at least :data:`RAIL_SAMPLES` samples is at its rail — both signs, since |−32768| and |32767|
+    counts agree to 3e-5. Returns (top (3,), at (N, 3) samples at the top, rail (3,) axes with a rail)."""
+    top = x_abs.max(axis=0) if x_abs.shape[0] else np.zeros(3)
+    at = (x_abs >= top * (1 - RAIL_TOL)) & (top > rail_min)
+    return top, at, at.sum(axis=0) >= RAIL_SAMPLES

@@ -21,6 +21,7 @@ from scipy.optimize import least_squares
 
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
+from ..specs import rail_samples
 from .decomp import decompose_many
 from .ellipsoid import FitError
 from .segment import Interval, Phase, Segmentation, moving_std
@@ -671,7 +672,6 @@ def fit_gyro_kinematic(segs: list[Segmentation], mag: SensorCalibration | None, 
 # -- saturation: readings at the gyro's rail (issue 11: tilt-sphere) ------------------------------------------
 
 RAIL_MIN = 1.0  # rad/s: no gyro rail lies below (the smallest MEMS range, ±250 °/s, is 4.36 rad/s)
-RAIL_SAMPLES = 10  # samples at an axis' largest magnitude, over all logs, that make it a rail, not a peak
 
 
 @dataclass
@@ -690,15 +690,13 @@ class ClippedStretch:
 
 def gyro_rails(segs: list[Segmentation]) -> Array:
     """The raw gyro rail per axis (3,) rad/s, NaN where an axis has none: an axis whose largest magnitude
-    over all logs exceeds :data:`RAIL_MIN` and recurs in at least :data:`RAIL_SAMPLES` samples (a true
+    over all logs exceeds :data:`RAIL_MIN` and recurs in at least :data:`onlinecal.specs.RAIL_SAMPLES` samples (a true
     peak is reached once; a clipped reading repeats the sensor's full-scale value)."""
     g = np.concatenate([np.abs(s.data.gyro) for s in segs if s.data.n_imu]) if segs else np.zeros((0, 3))
     out = np.full(3, np.nan)
     if g.shape[0] == 0:
         return out
-    top = g.max(axis=0)
-    at = (g >= top * (1 - 1e-3)) & (top > RAIL_MIN)  # both signs: −32768 and 32767 counts
-    ok = at.sum(axis=0) >= RAIL_SAMPLES
+    top, _, ok = rail_samples(g, RAIL_MIN)
     out[ok] = top[ok]
     return out
 

@@ -369,22 +369,23 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         timing["check"] = time.perf_counter() - t0
     if ukf:
         t0 = time.perf_counter()
-        _ukf_stage(diag, logs, cal, exts)
+        _ukf_stage(diag, logs, cal, exts, g)
         timing["ukf"] = time.perf_counter() - t0
     timing["total"] = time.perf_counter() - t_start
     return diag
 
 
-def _ukf_stage(diag: Diagnosis, logs: list[ImuData], cal: Calibration, exts: dict[str, Any]) -> None:
+def _ukf_stage(diag: Diagnosis, logs: list[ImuData], cal: Calibration, exts: dict[str, Any],
+               g: float = G0) -> None:
     """Stage 6: NIS of the UKF from the baseline, and with the extensions; the figures of the sensor a finding
     acts on (accel, mag; pooled over both for the gyro and "all") go into its gain."""
     from .online import NOT_CORRECTED, run_ukf
 
-    before = run_ukf(logs, cal)
+    before = run_ukf(logs, cal, g=g)
     diag.baseline["ukf"] = before
     if "error" in before or not any(k not in NOT_CORRECTED for k in exts):
         return
-    after = run_ukf(logs, cal, exts)
+    after = run_ukf(logs, cal, exts, g=g)
     diag.ukf_extended = after
     if "error" in after:
         return

@@ -89,7 +89,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=300.0)
     ap.add_argument("--effects", default=",".join(FLIGHT_EFFECTS))
     a = ap.parse_args()
-    rows: list[tuple[str, str, int, int, float]] = []
+    rows: list[tuple[str, str, int, int, int, float]] = []
     for prof in a.profiles.split(","):
         nones, cpu, untest_ok = 0, [], 0
         for s in range(a.clean):
@@ -101,10 +101,10 @@ def main() -> None:
             untest_ok += all(k in u for k in UNTESTABLE)
             sig = [(f.effect, f.sensor, f.axis, round(f.score, 1), round(f.threshold, 1)) for f in dg.significant]
             print(f"{prof} clean seed {seed}: verdict {dg.verdict} {sig} cpu {c:.1f} s", flush=True)
-        rows.append((prof, "none (clean)", a.clean, nones, float(np.mean(cpu))))
+        rows.append((prof, "none (clean)", a.clean, nones, 0, float(np.mean(cpu))))
         print(f"{prof}: untestable list names {', '.join(UNTESTABLE)} in {untest_ok}/{a.clean}", flush=True)
         for name in a.effects.split(","):
-            hits, cpu = 0, []
+            hits, unt, cpu = 0, 0, []
             for s in range(a.seeds):
                 seed = 7100 + s
                 rng = np.random.default_rng(9100 + s)
@@ -114,15 +114,19 @@ def main() -> None:
                 cpu.append(c)
                 ok = named(dg, eff.describe())
                 hits += ok
-                sig = [(f.effect, f.sensor, f.axis, round(f.score, 1)) for f in dg.significant]
+                blocked = any(u.startswith(name) for u in dg.untestable)
+                unt += blocked
+                found = [(f.effect, f.sensor, f.axis, round(f.score, 1)) for f in dg.significant]
                 print(f"{prof} {eff.spec() if hasattr(eff, 'spec') else name} seed {seed}: "
-                      f"{'named' if ok else 'MISSED'}; verdict {dg.verdict} {sig} cpu {c:.1f} s", flush=True)
-            rows.append((prof, name, a.seeds, hits, float(np.mean(cpu))))
+                      f"{'named' if ok else 'untestable (reported)' if blocked else 'MISSED'}; verdict {dg.verdict} {found} cpu {c:.1f} s", flush=True)
+            rows.append((prof, name, a.seeds, hits, unt, float(np.mean(cpu))))
     print()
     print(f"flights of {a.duration:.0f} s at 100 Hz (simulate defaults), diagnose without the UKF stage")
-    print(f"{'profile':11s} {'effect':20s} {'sessions':>8} {'ok':>4} {'mean CPU s':>10}")
-    for prof, name, n, k, c in rows:
-        print(f"{prof:11s} {name:20s} {n:8d} {k:4d} {c:10.1f}")
+    print("ok: verdict none (clean) or the effect named with its sensor; untestable: the effect is in the "
+          "diagnosis' untestable list (its data requirement not met)")
+    print(f"{'profile':11s} {'effect':20s} {'sessions':>8} {'ok':>4} {'untestable':>10} {'mean CPU s':>10}")
+    for prof, name, n, k, u, c in rows:
+        print(f"{prof:11s} {name:20s} {n:8d} {k:4d} {u:10d} {c:10.1f}")
     sys.stdout.flush()
 
 

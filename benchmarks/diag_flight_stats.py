@@ -117,16 +117,17 @@ def main() -> None:
                 blocked = any(u.startswith(name) for u in dg.untestable)
                 unt += blocked
                 found = [(f.effect, f.sensor, f.axis, round(f.score, 1)) for f in dg.significant]
-                print(f"{prof} {eff.spec() if hasattr(eff, 'spec') else name} seed {seed}: "
-                      f"{'named' if ok else 'untestable (reported)' if blocked else 'MISSED'}; verdict {dg.verdict} {found} cpu {c:.1f} s", flush=True)
+                what = "named" if ok else "untestable (reported)" if blocked else "MISSED"
+                print(f"{prof} {eff.spec()} seed {seed}: {what}; verdict {dg.verdict} {found} cpu {c:.1f} s",
+                      flush=True)
             rows.append((prof, name, a.seeds, hits, unt, float(np.mean(cpu))))
     print()
     print(f"flights of {a.duration:.0f} s at 100 Hz (simulate defaults), diagnose without the UKF stage")
     print("ok: verdict none (clean) or the effect named with its sensor; untestable: the effect is in the "
           "diagnosis' untestable list (its data requirement not met)")
     print(f"{'profile':11s} {'effect':20s} {'sessions':>8} {'ok':>4} {'untestable':>10} {'mean CPU s':>10}")
-    for prof, name, n, k, u, c in rows:
-        print(f"{prof:11s} {name:20s} {n:8d} {k:4d} {u:10d} {c:10.1f}")
+    for prof, name, n, k, nu, c in rows:
+        print(f"{prof:11s} {name:20s} {n:8d} {k:4d} {nu:10d} {c:10.1f}")
     sys.stdout.flush()
 
 

@@ -205,8 +205,9 @@ def _gate_check(sensor: str, st: dict[str, Any]) -> tuple[str, str] | None:
 
 def rail_checks(raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, int]]:
     """Saturation seen in the raw samples (``raw``: sensor → (N, 3)): an axis whose largest magnitude,
-    above :data:`RAIL_MIN`, recurs in at least :data:`onlinecal.specs.RAIL_SAMPLES` samples is at its rail (a true peak is
-    reached once) → degraded, whether or not the filter raised an event."""
+    above :data:`RAIL_MIN`, recurs in at least :data:`onlinecal.specs.RAIL_SAMPLES` samples is at its rail
+    (a true peak is reached once; :func:`onlinecal.specs.rail_samples`)
+    → degraded, whether or not the filter raised an event."""
     out: list[tuple[str, str]] = []
     counts: dict[str, int] = {}
     for s, x in (raw or {}).items():

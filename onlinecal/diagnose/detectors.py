@@ -21,6 +21,13 @@ from .regressors import Design
 Array = NDArray[np.float64]
 AXES = "xyz"
 DRIFT_KNOT_S = 10.0
+# at most this many knots per log for the drift walk (61: a 10-minute log at DRIFT_KNOT_S): longer logs get
+# wider knot spacing, so the drift block has a duration-independent column count and the dense design stays
+# (rows × bounded columns), i.e. memory linear in the duration (it grew as T² with a fixed spacing: 4.9 GB
+# for a 30-minute flight). A rate random walk's power is ∝ 1/f², so the coarser knots lose only its fast
+# part; drift_prior takes the actual spacing, so the walk's density keeps its meaning.
+DRIFT_MAX_KNOTS = 61
+PILE_UP = 3.0  # samples at a rail against the median count of the three values just below it (find_saturation)
 
 
 @dataclass
@@ -67,9 +74,10 @@ def temp_cols(sensor: str) -> Callable[[Design, Calibration], Array]:
     return f
 
 
-def drift_knots(d: Design, spacing: float = DRIFT_KNOT_S) -> Array:
+def drift_knots(d: Design, spacing: float = DRIFT_KNOT_S, max_knots: int = DRIFT_MAX_KNOTS) -> Array:
+    """Knot times (K,) of the drift walk over the log: ``spacing`` s apart, at most ``max_knots``."""
     T = d.s.t[-1] - d.s.t[0]
-    nk = max(2, int(np.ceil(T / spacing)) + 1)
+    nk = min(max_knots, max(2, int(np.ceil(T / spacing)) + 1))
     return np.linspace(d.s.t[0], d.s.t[-1], nk)
 
 
@@ -85,17 +93,35 @@ def hats(t: Array, knots: Array) -> Array:
     return H[:, 1:]
 
 
+def _hat(t: Array, knots: Array, k: int) -> Array:
+    """The piecewise-linear hat of knot k (1 at knots[k], 0 at its neighbours and beyond) at times t."""
+    y = np.zeros(t.size)
+    if k > 0:
+        m = (t >= knots[k - 1]) & (t <= knots[k])
+        y[m] = (t[m] - knots[k - 1]) / (knots[k] - knots[k - 1])
+    if k < knots.size - 1:
+        m = (t > knots[k]) & (t <= knots[k + 1])
+        y[m] = (knots[k + 1] - t[m]) / (knots[k + 1] - knots[k])
+    elif k == knots.size - 1:
+        y[t >= knots[k]] = 1.0
+    return y
+
+
 def drift_cols(sensor: str) -> Callable[[Design, Calibration], Array]:
+    """The drift walk's columns: one hat per knot (the first dropped: the constant is the bias nuisance's)
+    and axis, each built over its own support only (two knot intervals), so no samples × knots matrix is
+    held (the same values as :func:`hats`)."""
     def f(d: Design, cal: Calibration) -> Array:
         kn = drift_knots(d)
-        H = hats(d.s.t, kn)
+        t = d.s.t
         out = []
-        for k in range(H.shape[1]):
-            nz = np.flatnonzero(H[:, k])
-            r0, r1 = d.local_range(int(nz[0]), int(nz[-1]) + 1)
+        for k in range(1, kn.size):
+            i0 = int(np.searchsorted(t, kn[k - 1], side="left"))
+            i1 = int(np.searchsorted(t, kn[k + 1], side="right")) if k + 1 < kn.size else t.size
+            r0, r1 = d.local_range(i0, max(i1, i0 + 1))
             if r1 >= d.s.n - d.b.L:  # the last knot's hat reaches the log's end: no zero margin needed
                 r1 = d.s.n
-            phi = np.repeat(H[r0:r1, k : k + 1], 3, axis=1)
+            phi = np.repeat(_hat(t[r0:r1], kn, k)[:, None], 3, axis=1)
             out.append(_raw_cols(d, cal, sensor, phi, r0, r1))
         return np.concatenate(out, axis=1)  # column order: knot-major, axis-minor
     return f
@@ -276,6 +302,17 @@ def find_saturation(raw: Array, sensor: str, min_samples: int = 10, min_run: int
     runs = np.flatnonzero(d == -1) - np.flatnonzero(d == 1)
     if (runs >= min_run).sum() < 2:
         return None
+    # a rail piles the samples up: every sample whose input is beyond it reads exactly the limit, so the top
+    # value holds many times more samples than the values just below it. A flat-topped motion (a fixed-wing's
+    # roll-rate limit, a plateau of the rate setpoint) reaches its top as often as its neighbours on the
+    # quantisation lattice (clean 5-min fixed-wing flight, seed 7012: 17 samples at the top against 8–12 at
+    # each of the three values below; a simulated gyro rail: 53 against 1–2, an accelerometer rail 3262
+    # against 2–5)
+    below = np.unique(a[np.isfinite(a) & (a < top * (1 - 1e-9))])[-3:]
+    if below.size:
+        near = float(np.median([np.count_nonzero(a == v) for v in below]))
+        if n < PILE_UP * max(near, 1.0):
+            return None
     return Saturated(sensor, top, anyax, n, int(runs.max()), at.sum(axis=0).tolist())
 
 

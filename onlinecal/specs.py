@@ -43,7 +43,8 @@ __all__ = ["ACCEL_SPEC", "FIELD_DIP_DEG", "FIELD_GAUSS", "G0", "GYRO_SPEC", "MAG
 
 
 RAIL_SAMPLES = 10  # samples at an axis' largest magnitude that make it a rail, not a peak (reached once)
-RAIL_TOL = 1e-3  # relative: the two rails of a two's-complement ADC differ by one count (−32768 vs 32767)
+RAIL_TOL = 1e-4  # relative: the two rails of a 16-bit ADC differ by one count (3e-5: −32768 vs 32767); a
+# wider tolerance takes a constant-rate turn on a quantised log (1 mrad/s steps in a .tlog) for a rail
 
 
 def rail_samples(x_abs: np.ndarray, rail_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

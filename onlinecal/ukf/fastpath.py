@@ -1,0 +1,365 @@
+"""The motion step of an ordinary block in two compiled calls (issue 15): the largest piece of the
+per-block Python that could be moved into numba in this round.
+
+:func:`.step.motion_step` on the numba backend makes, per block, some forty small numpy and kernel calls
+(sigma points, sensor models, propagation, attitude errors, process noise, moments, the vehicle
+deviation, measurements, update, attitude fold, heading marginalisation, checks). For a block without
+model extensions and hold offsets (the ordinary case), :func:`motion_step_fast` replaces them by
+
+1. :func:`predict_kernel` — sigma points (:func:`.kernels_update.sigma_points_kernel`), eqs. 1–6 for the
+   dynamic points' gyro and every point's accel and mag (:func:`.kernels_propagate.model_pair_kernel`),
+   the propagation (:func:`.kernels_propagate.propagate_kernel`), the attitude errors
+   (:func:`.kernels_propagate.rot_log_rel_kernel`), the block's process noise
+   (:func:`.predict.block_process_noise` with :func:`.noise.bilinear_var`), the unscented moments
+   (:func:`.kernels_update.unscented_kernel`), the mean's turn rate and the quasi-static deviation of the
+   specific force (:meth:`.measurements.AccelModel.deviation`);
+2. :func:`update_fold_kernel` — the motion measurements (:func:`.measurements.motion_measurements`: the
+   accel's quasi-static R, h(x) of accel and mag), the gated update
+   (:func:`.kernels_update.update_kernel`) and the USQUE fold of the posterior
+   (:func:`.attitude_init.fold_attitude`, :func:`.attitude_init.set_yaw_variance`) with its finiteness check.
+
+Between the two, Python keeps what has state and events: the vehicle detector, the motion coverage, and
+after the second the NIS bookkeeping (:func:`.step.gated_update`'s loop: windows, divergence) and the
+commit's trace. The arithmetic and its order are those of the kernels the numba path already uses, so
+the results equal it to rounding (and the numpy reference within 1e-9 relative:
+``tests/test_speed_fastpath.py``). Every other block (rests, extensions, holds, a clipped accel without a
+magnetometer, the numpy backend) takes :func:`.step.motion_step`'s general path. ``ONLINECAL_FASTPATH=0``
+(or :func:`set_enabled`) turns this path off.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import kernels
+from .kernels import _njit
+from .kernels_propagate import model_pair_kernel, propagate_kernel, rot_log_rel_kernel
+from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
+from .kernels_unscented import _STATUS, _identity
+from .layout import DIP, SENSOR_SLICE
+from .predict import interp_weights
+from .start import calibrated
+from .unscented import UpdateResult
+
+if TYPE_CHECKING:
+    from .blocks import Blocks
+    from .filter import OnlineCalibrator
+
+Array = NDArray[np.float64]
+
+_enabled = os.environ.get("ONLINECAL_FASTPATH", "1").strip() not in ("0", "false", "no", "off")
+_G0, _A0, _M0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["accel"].start, SENSOR_SLICE["mag"].start
+_EMPTY1 = np.zeros(1)
+_EMPTY3 = np.zeros((1, 1, 3))
+
+
+def enabled() -> bool:
+    """Whether :func:`motion_step_fast` is used for ordinary blocks on the numba backend."""
+    return _enabled and kernels.backend() == "numba"
+
+
+def set_enabled(on: bool) -> bool:
+    """Turn the fast path on or off; returns the previous setting (tests compare both)."""
+    global _enabled
+    old, _enabled = _enabled, bool(on)
+    return old
+
+
+# ------------------------------------------------------------------------------------------------
+# compiled parts
+@_njit
+def _bilinear_var(P: Array, g0: int) -> Array:
+    """:func:`.noise.bilinear_var` (3,) of P (n, n), the gyro's 12 terms from column g0."""
+    sig = np.empty(12)
+    for i in range(12):
+        sig[i] = math.sqrt(P[g0 + i, g0 + i])
+    s_ang = max(sig[6], sig[9])
+    for i in range(1, 3):
+        s_ang = max(s_ang, max(sig[6 + i], sig[9 + i]))
+    v_o = np.empty(3)
+    for i in range(3):
+        v_o[i] = sig[i] * sig[i]
+    tot = (v_o[0] + v_o[1]) + v_o[2]
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = sig[3 + i] * sig[3 + i] * v_o[i] + s_ang**2 * (tot - v_o[i])
+    return out
+
+
+@_njit
+def _rodrigues1(x: float, y: float, z: float) -> Array:
+    """:func:`.geometry.rodrigues1` (the fold's formula, series below 1e-4 rad): exp([v]_x) (3, 3)."""
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-8:
+        s, c = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
+    else:
+        a = math.sqrt(a2)
+        s, c = math.sin(a) / a, (1.0 - math.cos(a)) / a2
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = 1.0 - c * (y * y + z * z), c * x * y - s * z, c * x * z + s * y
+    R[1, 0], R[1, 1], R[1, 2] = c * x * y + s * z, 1.0 - c * (x * x + z * z), c * y * z - s * x
+    R[2, 0], R[2, 1], R[2, 2] = c * x * z - s * y, c * y * z + s * x, 1.0 - c * (x * x + y * y)
+    return R
+
+
+@_njit
+def _deviation(f_all: Array, Wm: Array, Wc: Array, sig_mean: float, gravity: float) -> float:
+    """:meth:`.measurements.AccelModel.deviation`: ||f| − g| beyond 3σ of noise and calibration spread."""
+    S = f_all.shape[0]
+    nf = np.empty(S)
+    for s in range(S):
+        nf[s] = math.sqrt(f_all[s, 0] ** 2 + f_all[s, 1] ** 2 + f_all[s, 2] ** 2)
+    nf_mean = 0.0
+    for s in range(S):
+        nf_mean += Wm[s] * nf[s]
+    var_cal = 0.0
+    for s in range(S):
+        var_cal += Wc[s] * (nf[s] - nf_mean) ** 2
+    var_cal = max(0.0, var_cal)
+    return max(0.0, abs(nf_mean - gravity) - 3.0 * math.sqrt(sig_mean**2 + var_cal))
+
+
+@_njit
+def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
+                   c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
+                   q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float,
+                   gravity: float, g0: int, a0: int, m0: int, dip_col: int
+                   ) -> tuple[bool, Array, Array, Array, Array, Array, Array, Array, Array, Array, float]:
+    """The prediction of one motion block (:func:`.step.motion_step` up to the measurements), one call.
+
+    x (n,), P (n, n) the state; scale = λ + n; order the Cholesky's state order; R_nom (3, 3); w (L + 1, 3),
+    dt (L,), c_mag (L + 1,) (read when has_mag) as :func:`.kernels_propagate.propagate_kernel`; dyn the
+    dynamic sigma points; Wm, Wc the weights; q (n,) the base process noise (changed in place: + the
+    trapezoid allowance ``q_att_jerk`` and the bilinear term × dt_blk² on the attitude); w_mean (3,) the
+    block-mean raw rate; a_mean (3,) the block-mean raw accel, σ ``sig_mean``; g0, a0, m0 the sensors'
+    first columns; dip_col the dip's.
+
+    Returns (ok: P positive definite, x_pred (n,), Y (S, n), P_pred (n, n), R_end of the mean (3, 3),
+    f_body (S, 3), h_body (S, 3), sens_o (2S, 3), sens_Minv (2S, 3, 3) of accel then mag, ω of the mean
+    (3,) rad/s, the specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
+    """
+    n = x.shape[0]
+    X, ok = sigma_points_kernel(x, P, scale, order)
+    S, Sd = X.shape[0], dyn.shape[0]
+    if not ok:
+        z3 = np.zeros((1, 3))
+        return (False, x.copy(), X, P.copy(), R_nom.copy(), z3, z3, z3.copy(), np.zeros((1, 3, 3)), np.zeros(3), 0.0)
+    p = np.empty((Sd + 2 * S, 12))
+    for si in range(Sd):
+        for k in range(12):
+            p[si, k] = X[dyn[si], g0 + k]
+    for s in range(S):
+        for k in range(12):
+            p[Sd + s, k] = X[s, a0 + k]
+            p[Sd + S + s, k] = X[s, m0 + k]
+    o_all, M_all, Mi_all = model_pair_kernel(p)
+    o_g = o_all[:Sd].copy()
+    M_g = M_all[:Sd].copy()
+    R_end, f_body, h_body = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, _EMPTY3, False,
+                                             dip_col)
+    err = rot_log_rel_kernel(R_end)
+    for si in range(Sd):
+        for k in range(3):
+            X[dyn[si], k] = err[si, k]
+    # block process noise (.predict.block_process_noise): the trapezoid's allowance, then the bilinear term
+    bil = _bilinear_var(P, g0)
+    for k in range(3):
+        q[k] += q_att_jerk
+    for k in range(3):
+        q[k] += bil[k] * dt_blk**2
+    x_pred, Y, P_pred = unscented_kernel(X, Wm, Wc, q)
+    om = np.empty(3)
+    for i in range(3):
+        om[i] = (M_g[0, i, 0] * (w_mean[0] - o_g[0, 0]) + M_g[0, i, 1] * (w_mean[1] - o_g[0, 1])
+                 + M_g[0, i, 2] * (w_mean[2] - o_g[0, 2]))
+    f_all = np.empty((S, 3))
+    for s in range(S):
+        r = Sd + s
+        for i in range(3):
+            f_all[s, i] = (M_all[r, i, 0] * (a_mean[0] - o_all[r, 0]) + M_all[r, i, 1] * (a_mean[1] - o_all[r, 1])
+                           + M_all[r, i, 2] * (a_mean[2] - o_all[r, 2]))
+    dev = _deviation(f_all, Wm, Wc, sig_mean, gravity)
+    R0 = R_end[0].copy()
+    return (True, x_pred, Y, P_pred, R0, f_body, h_body, o_all[Sd:].copy(), Mi_all[Sd:].copy(), om, dev)
+
+
+@_njit
+def update_fold_kernel(Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_body: Array, sens_o: Array,
+                       sens_Minv: Array, z_acc: Array, use_acc: bool, var_a: float, z_mag: Array, use_mag: bool,
+                       var_mag: float, gravity: float, Wm: Array, Wc: Array, gates: Array,
+                       consider: NDArray[np.bool_], damp: float, R_nom: Array, yaw_var: float
+                       ) -> tuple[Array, Array, Array, NDArray[np.int64], bool, Array, bool]:
+    """Measurements, update and fold of one motion block, one call.
+
+    The measurements of :func:`.measurements.motion_measurements` (accel: raw = M⁻¹ g f_body + o, R = var_a
+    per axis, droppable; mag: raw = M⁻¹ h_body + o, R = var_mag; gated by ``gates`` (accel, mag)), the joint
+    update (:func:`.kernels_update.update_kernel`), then the posterior folded (:func:`.attitude_init.fold_attitude`:
+    P symmetrised, R = R_nom exp([δθ]_x), δθ = 0; with yaw_var ≥ 0 the heading's variance set to it,
+    :func:`.attitude_init.set_yaw_variance`).
+
+    Returns (x (n,), P (n, n) folded, NIS (blocks,), status (blocks,) as update_kernel, whether the solve
+    succeeded, R (3, 3), whether x and P are finite with a positive diagonal).
+    """
+    S = Y.shape[0]
+    nb = int(use_acc) + int(use_mag)
+    z = np.empty(3 * nb)
+    Z = np.empty((S, 3 * nb))
+    r = np.empty(3 * nb)
+    gated = np.ones(nb, np.bool_)
+    droppable = np.zeros(nb, np.bool_)
+    gk = np.empty(nb)
+    k = 0
+    if use_acc:
+        for s in range(S):
+            for i in range(3):
+                Z[s, i] = (sens_Minv[s, i, 0] * (gravity * f_body[s, 0]) + sens_Minv[s, i, 1] * (gravity * f_body[s, 1])
+                           + sens_Minv[s, i, 2] * (gravity * f_body[s, 2])) + sens_o[s, i]
+        for i in range(3):
+            z[i] = z_acc[i]
+            r[i] = var_a
+        droppable[0] = True
+        gk[0] = gates[0]
+        k = 1
+    if use_mag:
+        c = 3 * k
+        for s in range(S):
+            t = S + s
+            for i in range(3):
+                Z[s, c + i] = (sens_Minv[t, i, 0] * h_body[s, 0] + sens_Minv[t, i, 1] * h_body[s, 1]
+                               + sens_Minv[t, i, 2] * h_body[s, 2]) + sens_o[t, i]
+        for i in range(3):
+            z[c + i] = z_mag[i]
+            r[c + i] = var_mag
+        gk[k] = gates[1]
+    x, P, nis, status, _pz, _pP, ok = update_kernel(Y, x_pred, P_pred, z, Z, r, Wm, Wc, gated, droppable, gk,
+                                                    consider, damp, False)
+    n = x.shape[0]
+    Ps = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            Ps[i, j] = 0.5 * (P[i, j] + P[j, i])
+    Rd = _rodrigues1(x[0], x[1], x[2])
+    R = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = R_nom[i, 0] * Rd[0, j] + R_nom[i, 1] * Rd[1, j] + R_nom[i, 2] * Rd[2, j]
+    xs = x.copy()
+    xs[0] = 0.0
+    xs[1] = 0.0
+    xs[2] = 0.0
+    if yaw_var >= 0.0:
+        u = R[2]
+        J = np.empty((3, 3))
+        for i in range(3):
+            for j in range(3):
+                J[i, j] = (1.0 if i == j else 0.0) - u[i] * u[j]
+        rows = np.empty((3, n))
+        for i in range(3):
+            for j in range(n):
+                rows[i, j] = J[i, 0] * Ps[0, j] + J[i, 1] * Ps[1, j] + J[i, 2] * Ps[2, j]
+        for i in range(3):
+            for j in range(n):
+                Ps[i, j] = rows[i, j]
+        cols = np.empty((n, 3))
+        for i in range(n):
+            for j in range(3):
+                cols[i, j] = Ps[i, 0] * J[j, 0] + Ps[i, 1] * J[j, 1] + Ps[i, 2] * J[j, 2]
+        for i in range(n):
+            for j in range(3):
+                Ps[i, j] = cols[i, j]
+        for i in range(3):
+            for j in range(3):
+                Ps[i, j] += yaw_var * (u[i] * u[j])
+    fine = True
+    for i in range(n):
+        if not math.isfinite(xs[i]) or not Ps[i, i] > 0.0:
+            fine = False
+        for j in range(n):
+            if not math.isfinite(Ps[i, j]):
+                fine = False
+    return xs, Ps, nis, status, ok, R, fine
+
+
+# ------------------------------------------------------------------------------------------------
+# the step (Python: what has state and events)
+def applies(cal: OnlineCalibrator, held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> bool:
+    """Whether block's motion step can take :func:`motion_step_fast`: numba backend, no model extensions,
+    no hold offsets in the state, and at least one measurement (the accel unclipped or the mag used)."""
+    lay = cal.lay
+    return (enabled() and not lay.ext_slice and not lay.hold_slice and not (clip["accel"] and not use_mag))
+
+
+def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float], use_mag: bool,
+                     clip: dict[str, bool]) -> None:
+    """:func:`.step.motion_step` for a block where :func:`applies`: the same steps, in the same order, with
+    the arithmetic in :func:`predict_kernel` and :func:`update_fold_kernel`."""
+    from .step import commit_folded, gated_bookkeeping, vehicle_accel_from_dev  # (step imports this module)
+
+    c = cal.config
+    tl = float(t[-1])
+    i, j = int(B.lo[b]), int(B.hi[b])
+    L = j - i
+    has_mag = bool(use_mag)
+    c_mag = _EMPTY1
+    if has_mag:
+        k0, n_m0 = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
+        c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
+    dt_blk = float(t[-1] - cal._t_last)
+    s_g = n["gyro"]
+    q = cal._process_noise(dt_blk, s_g)
+    jerk = 0.0
+    if L >= 2:
+        noise = float(B.jerk_n[b]) * 6.0 * (s_g * dt_blk / L / 4) ** 2
+        jerk = max(0.0, float(B.jerk[b]) - noise) / 3.0
+    lay = cal.lay
+    nst = lay.n
+    lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
+    order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
+    sig_mean = n["accel"] / math.sqrt(t.size)
+    a_mean = B.a_mean[b]
+    ok, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
+        cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+        lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+        _G0, _A0, _M0, DIP)
+    if not ok:
+        cal._diverged("covariance is not positive definite", tl)
+        return
+    cal.R_nom = R_end0
+    rate = float(np.linalg.norm(om))
+    var_v = vehicle_accel_from_dev(cal, dev, dt_blk, tl)
+    cal._coverage.add_motion(om, dt_blk, cal._vehicle.active)
+    if use_mag:
+        cal._coverage.add_field(calibrated(cal, "mag", B.m_mean[b]))
+    use_acc = not clip["accel"]
+    var_a = 0.0
+    if use_acc:
+        mod = cal._models.acc
+        g = mod.gravity
+        var_a = sig_mean**2 + (mod.dev_gain * dev) ** 2 + 2.0 * g * dev
+        if rate:
+            var_a = var_a + (mod.lever_m * rate**2) ** 2
+        var_a += var_v
+    n_m = int(B.mhi[b] - B.mlo[b])
+    var_mag = n["mag"] ** 2 / max(n_m, 1)
+    yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
+    k_div = cal._div.count
+    k_v = var_v / c.vehicle_accel_sigma**2 if var_v > 0 else 0.0
+    gates = np.array([cal._gates["accel"], cal._gates["mag"]])
+    x, P, nis, status, solved, R_new, fine = update_fold_kernel(
+        Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
+        c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
+    if not solved:
+        raise np.linalg.LinAlgError("Singular matrix")
+    res = UpdateResult(x, P)
+    names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
+    for k, s in enumerate(names):
+        if status[k] >= 0:
+            res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
+    gated_bookkeeping(cal, res, tl, True, k_v)
+    if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands
+        commit_folded(cal, R_new, x, P, fine, tl)

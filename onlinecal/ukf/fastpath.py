@@ -4,7 +4,7 @@ per-block Python that could be moved into numba in this round.
 :func:`.step.motion_step` on the numba backend makes, per block, some forty small numpy and kernel calls
 (sigma points, sensor models, propagation, attitude errors, process noise, moments, the vehicle
 deviation, measurements, update, attitude fold, heading marginalisation, checks). For a block without
-model extensions and hold offsets (the ordinary case), :func:`motion_step_fast` replaces them by
+model extensions and without a gyro hold offset (the ordinary case), :func:`motion_step_fast` replaces them by
 
 1. :func:`predict_kernel` — sigma points (:func:`.kernels_update.sigma_points_kernel`), eqs. 1–6 for the
    dynamic points' gyro and every point's accel and mag (:func:`.kernels_propagate.model_pair_kernel`),
@@ -22,7 +22,7 @@ Between the two, Python keeps what has state and events: the vehicle detector, t
 after the second the NIS bookkeeping (:func:`.step.gated_update`'s loop: windows, divergence) and the
 commit's trace. The arithmetic and its order are those of the kernels the numba path already uses, so
 the results equal it to rounding (and the numpy reference within 1e-9 relative:
-``tests/test_speed_fastpath.py``). Every other block (rests, extensions, holds, a clipped accel without a
+``tests/test_speed_fastpath.py``). Every other block (rests, extensions, a held gyro reading, a clipped accel without a
 magnetometer, the numpy backend) takes :func:`.step.motion_step`'s general path. ``ONLINECAL_FASTPATH=0``
 (or :func:`set_enabled`) turns this path off.
 """
@@ -129,7 +129,7 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
                    c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
                    q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float,
                    gravity: float, g0: int, a0: int, m0: int, dip_col: int
-                   ) -> tuple[bool, Array, Array, Array, Array, Array, Array, Array, Array, Array, float]:
+                   ) -> tuple[bool, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, float]:
     """The prediction of one motion block (:func:`.step.motion_step` up to the measurements), one call.
 
     x (n,), P (n, n) the state; scale = λ + n; order the Cholesky's state order; R_nom (3, 3); w (L + 1, 3),
@@ -139,7 +139,7 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     block-mean raw rate; a_mean (3,) the block-mean raw accel, σ ``sig_mean``; g0, a0, m0 the sensors'
     first columns; dip_col the dip's.
 
-    Returns (ok: P positive definite, x_pred (n,), Y (S, n), P_pred (n, n), R_end of the mean (3, 3),
+    Returns (ok: P positive definite, the propagated sigma points X (S, n), x_pred (n,), Y (S, n), P_pred (n, n), R_end of the mean (3, 3),
     f_body (S, 3), h_body (S, 3), sens_o (2S, 3), sens_Minv (2S, 3, 3) of accel then mag, ω of the mean
     (3,) rad/s, the specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
     """
@@ -148,7 +148,8 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     S, Sd = X.shape[0], dyn.shape[0]
     if not ok:
         z3 = np.zeros((1, 3))
-        return (False, x.copy(), X, P.copy(), R_nom.copy(), z3, z3, z3.copy(), np.zeros((1, 3, 3)), np.zeros(3), 0.0)
+        return (False, X, x.copy(), X.copy(), P.copy(), R_nom.copy(), z3, z3.copy(), z3.copy(), np.zeros((1, 3, 3)),
+                np.zeros(3), 0.0)
     p = np.empty((Sd + 2 * S, 12))
     for si in range(Sd):
         for k in range(12):
@@ -185,19 +186,21 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
                            + M_all[r, i, 2] * (a_mean[2] - o_all[r, 2]))
     dev = _deviation(f_all, Wm, Wc, sig_mean, gravity)
     R0 = R_end[0].copy()
-    return (True, x_pred, Y, P_pred, R0, f_body, h_body, o_all[Sd:].copy(), Mi_all[Sd:].copy(), om, dev)
+    return (True, X, x_pred, Y, P_pred, R0, f_body, h_body, o_all[Sd:].copy(), Mi_all[Sd:].copy(), om, dev)
 
 
 @_njit
-def update_fold_kernel(Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_body: Array, sens_o: Array,
+def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_body: Array, sens_o: Array,
                        sens_Minv: Array, z_acc: Array, use_acc: bool, var_a: float, z_mag: Array, use_mag: bool,
-                       var_mag: float, gravity: float, Wm: Array, Wc: Array, gates: Array,
+                       var_mag: float, hold_acc: int, hold_mag: int, gravity: float, Wm: Array, Wc: Array, gates: Array,
                        consider: NDArray[np.bool_], damp: float, R_nom: Array, yaw_var: float
                        ) -> tuple[Array, Array, Array, NDArray[np.int64], bool, Array, bool]:
     """Measurements, update and fold of one motion block, one call.
 
-    The measurements of :func:`.measurements.motion_measurements` (accel: raw = M⁻¹ g f_body + o, R = var_a
-    per axis, droppable; mag: raw = M⁻¹ h_body + o, R = var_mag; gated by ``gates`` (accel, mag)), the joint
+    The measurements of :func:`.measurements.motion_measurements` for the propagated sigma points X (S, n)
+    (accel: raw = M⁻¹ g f_body + o, R = var_a per axis, droppable; mag: raw = M⁻¹ h_body + o, R = var_mag;
+    each plus the held reading's offset X[:, hold:hold + 3] where hold_acc / hold_mag ≥ 0; gated by ``gates``
+    (accel, mag)), the joint
     update (:func:`.kernels_update.update_kernel`), then the posterior folded (:func:`.attitude_init.fold_attitude`:
     P symmetrised, R = R_nom exp([δθ]_x), δθ = 0; with yaw_var ≥ 0 the heading's variance set to it,
     :func:`.attitude_init.set_yaw_variance`).
@@ -219,6 +222,8 @@ def update_fold_kernel(Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_
             for i in range(3):
                 Z[s, i] = (sens_Minv[s, i, 0] * (gravity * f_body[s, 0]) + sens_Minv[s, i, 1] * (gravity * f_body[s, 1])
                            + sens_Minv[s, i, 2] * (gravity * f_body[s, 2])) + sens_o[s, i]
+                if hold_acc >= 0:
+                    Z[s, i] = Z[s, i] + X[s, hold_acc + i]
         for i in range(3):
             z[i] = z_acc[i]
             r[i] = var_a
@@ -232,12 +237,24 @@ def update_fold_kernel(Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_
             for i in range(3):
                 Z[s, c + i] = (sens_Minv[t, i, 0] * h_body[s, 0] + sens_Minv[t, i, 1] * h_body[s, 1]
                                + sens_Minv[t, i, 2] * h_body[s, 2]) + sens_o[t, i]
+                if hold_mag >= 0:
+                    Z[s, c + i] = Z[s, c + i] + X[s, hold_mag + i]
         for i in range(3):
             z[c + i] = z_mag[i]
             r[c + i] = var_mag
         gk[k] = gates[1]
     x, P, nis, status, _pz, _pP, ok = update_kernel(Y, x_pred, P_pred, z, Z, r, Wm, Wc, gated, droppable, gk,
                                                     consider, damp, False)
+    xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)
+    return xs, Ps, nis, status, ok, R, fine
+
+
+@_njit
+def fold_kernel(x: Array, P: Array, R_nom: Array, yaw_var: float) -> tuple[Array, Array, Array, bool]:
+    """:func:`.attitude_init.fold_attitude` (USQUE reset) of a posterior x (n,), P (n, n) on R_nom (3, 3):
+    P symmetrised, R = R_nom exp([δθ]_x), δθ = 0 (x is not changed: a copy); with yaw_var ≥ 0 the heading's
+    knowledge replaced by that variance (:func:`.attitude_init.set_yaw_variance`). Returns (x, P, R, whether
+    x and P are finite with a positive diagonal)."""
     n = x.shape[0]
     Ps = np.empty((n, n))
     for i in range(n):
@@ -282,20 +299,28 @@ def update_fold_kernel(Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_
         for j in range(n):
             if not math.isfinite(Ps[i, j]):
                 fine = False
-    return xs, Ps, nis, status, ok, R, fine
+    return xs, Ps, R, fine
 
 
 # ------------------------------------------------------------------------------------------------
 # the step (Python: what has state and events)
 def applies(cal: OnlineCalibrator, held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> bool:
-    """Whether block's motion step can take :func:`motion_step_fast`: numba backend, no model extensions,
-    no hold offsets in the state, and at least one measurement (the accel unclipped or the mag used)."""
+    """Whether a block's motion step can take :func:`motion_step_fast`: numba backend, no model extensions,
+    no gyro hold offset in the propagation (:func:`.step.offsets` of the gyro while the rest detector says
+    still), and at least one measurement (the accel unclipped or the mag used)."""
     lay = cal.lay
-    return (enabled() and not lay.ext_slice and not lay.hold_slice and not (clip["accel"] and not use_mag))
+    return (enabled() and not lay.ext_slice and not ("gyro" in lay.hold_slice and cal._rest_det.still)
+            and not (clip["accel"] and not use_mag))
 
 
-def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float], use_mag: bool,
-                     clip: dict[str, bool]) -> None:
+def _hold_col(cal: OnlineCalibrator, sensor: str, held: dict[str, bool]) -> int:
+    """First state column of ``sensor``'s hold offset where its reading is held in this block, else −1."""
+    sl = cal.lay.hold_slice.get(sensor) if held[sensor] else None
+    return -1 if sl is None else int(sl.start)
+
+
+def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float],
+                     held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
     """:func:`.step.motion_step` for a block where :func:`applies`: the same steps, in the same order, with
     the arithmetic in :func:`predict_kernel` and :func:`update_fold_kernel`."""
     from .step import commit_folded, gated_bookkeeping, vehicle_accel_from_dev  # (step imports this module)
@@ -322,7 +347,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
     sig_mean = n["accel"] / math.sqrt(t.size)
     a_mean = B.a_mean[b]
-    ok, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
+    ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
         cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
         lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
         _G0, _A0, _M0, DIP)
@@ -351,8 +376,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     k_v = var_v / c.vehicle_accel_sigma**2 if var_v > 0 else 0.0
     gates = np.array([cal._gates["accel"], cal._gates["mag"]])
     x, P, nis, status, solved, R_new, fine = update_fold_kernel(
-        Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
-        c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
+        X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
+        _hold_col(cal, "accel", held), _hold_col(cal, "mag", held), c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
     if not solved:
         raise np.linalg.LinAlgError("Singular matrix")
     res = UpdateResult(x, P)

@@ -131,7 +131,7 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
                 held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
     """Predict over the block, then one update with its mean accel (unless clipped) and mag."""
     if fastpath.applies(cal, held, use_mag, clip):  # an ordinary block: two compiled calls (.fastpath)
-        fastpath.motion_step_fast(cal, B, b, t, n, use_mag, clip)
+        fastpath.motion_step_fast(cal, B, b, t, n, held, use_mag, clip)
         return
     tl = float(t[-1])
     try:

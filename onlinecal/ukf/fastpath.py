@@ -39,8 +39,8 @@ from numpy.typing import NDArray
 from . import kernels
 from .kernels import _njit
 from .kernels_propagate import model_pair_kernel, propagate_kernel, rot_log_rel_kernel
-from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
 from .kernels_unscented import _STATUS, _identity
+from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
 from .layout import DIP, SENSOR_SLICE
 from .predict import interp_weights
 from .start import calibrated
@@ -139,11 +139,11 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     block-mean raw rate; a_mean (3,) the block-mean raw accel, σ ``sig_mean``; g0, a0, m0 the sensors'
     first columns; dip_col the dip's.
 
-    Returns (ok: P positive definite, the propagated sigma points X (S, n), x_pred (n,), Y (S, n), P_pred (n, n), R_end of the mean (3, 3),
+    Returns (ok: P positive definite, the propagated sigma points X (S, n), x_pred (n,), Y (S, n),
+    P_pred (n, n), R_end of the mean (3, 3),
     f_body (S, 3), h_body (S, 3), sens_o (2S, 3), sens_Minv (2S, 3, 3) of accel then mag, ω of the mean
     (3,) rad/s, the specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
     """
-    n = x.shape[0]
     X, ok = sigma_points_kernel(x, P, scale, order)
     S, Sd = X.shape[0], dyn.shape[0]
     if not ok:
@@ -377,7 +377,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     gates = np.array([cal._gates["accel"], cal._gates["mag"]])
     x, P, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
-        _hold_col(cal, "accel", held), _hold_col(cal, "mag", held), c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
+        _hold_col(cal, "accel", held), _hold_col(cal, "mag", held), c.gravity, cal._Wm, cal._Wc, gates,
+        lay.consider, float(c.update_damping), cal.R_nom, yaw)
     if not solved:
         raise np.linalg.LinAlgError("Singular matrix")
     res = UpdateResult(x, P)

@@ -355,7 +355,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         cal._diverged("covariance is not positive definite", tl)
         return
     cal.R_nom = R_end0
-    rate = float(np.linalg.norm(om))
+    rate = math.sqrt(float(np.dot(om, om)))  # (np.linalg.norm's arithmetic, without its checks)
     var_v = vehicle_accel_from_dev(cal, dev, dt_blk, tl)
     cal._coverage.add_motion(om, dt_blk, cal._vehicle.active)
     if use_mag:

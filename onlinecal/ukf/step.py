@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from .filter import OnlineCalibrator
 
 Array = NDArray[np.float64]
+_UNJUDGED: Array = np.empty(0)  # the σ handed to the disturbance gate for a block it does not judge
 
 
 def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T_all: Array, tm_all: Array,
@@ -48,7 +49,9 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
     tl = float(t[-1])
     use_mag, mag_changed = mag_block(cal, tm_all[ml:mh], m_all[ml:mh], tl)
-    use_mag = cal._magd.gate(use_mag, cal.x, cal.sigma(), m_all[ml:mh], a, tl, c.gravity, cal._event,
+    # σ is read only where the block's field is judged (a used mag with samples): not computed otherwise
+    sig = cal.sigma() if use_mag and mh > ml else _UNJUDGED
+    use_mag = cal._magd.gate(use_mag, cal.x, sig, m_all[ml:mh], a, tl, c.gravity, cal._event,
                              nis_in_order(cal._nis.stats, cal._nis.band()[1]),  # a magnetic disturbance
                              accel_is_gravity=not cal._vehicle.active)
     spec = cal._spec_noise()

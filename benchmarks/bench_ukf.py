@@ -224,6 +224,15 @@ _PARTS = [
     ("onlinecal.ukf.fastpath", "update_fold_kernel", "  update_fold_kernel (compiled)"),
     ("onlinecal.ukf.step", "gated_bookkeeping", "  NIS bookkeeping"),
     ("onlinecal.ukf.step", "commit_folded", "  commit (trace)"),
+    # the general path (ONLINECAL_FASTPATH=0, and the rest step): 0 where the fast path took the block
+    ("onlinecal.ukf.step", "sigma_points_of", "  sigma points (general path; motion and rest)"),
+    ("onlinecal.ukf.step", "propagate_sigma_points", "  propagation + sensor models (general path)"),
+    ("onlinecal.ukf.step", "block_process_noise", "  block process noise (general path)"),
+    ("onlinecal.ukf.step", "predict_moments", "  unscented moments (general path)"),
+    ("onlinecal.ukf.step", "vehicle_accel", "  vehicle detector (general path)"),
+    ("onlinecal.ukf.step", "motion_measurements", "  measurements (general path)"),
+    ("onlinecal.ukf.step", "gated_update", "  update + NIS bookkeeping (general path; motion and rest)"),
+    ("onlinecal.ukf.step", "commit", "  fold + heading + checks + commit (general path; motion and rest)"),
 ]
 
 
@@ -256,15 +265,16 @@ def block_parts(d) -> None:
             c0 = time.thread_time()
             res = replay([d], None)
             tot = time.thread_time() - c0
+            which = "fast path" if fastpath.enabled() else "general path (ONLINECAL_FASTPATH=0)"
     finally:
         for obj, attr, f in reversed(undo):
             setattr(obj, attr, f)
     N, nb = d.n_imu, res.calibration.meta["online"]["blocks"]
-    print(f"parts of a block, fast path, {d.duration:.0f} s ({nb} blocks; thread CPU clock, each part wrapped): "
+    print(f"parts of a block, {which}, {d.duration:.0f} s ({nb} blocks; thread CPU clock, each part wrapped): "
           f"total {1e6 * tot / N:.1f} µs per IMU sample, {1e6 * tot / nb:.0f} µs per block")
     for _, _, label in _PARTS:
         v = acc.get(label, 0.0)
-        print(f"  {label:58s} {1e6 * v / N:6.2f} µs/sample {1e6 * v / nb:7.1f} µs/block {100 * v / tot:5.1f} %")
+        print(f"  {label:66s} {1e6 * v / N:6.2f} µs/sample {1e6 * v / nb:7.1f} µs/block {100 * v / tot:5.1f} %")
 
 
 if __name__ == "__main__":

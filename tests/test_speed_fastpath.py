@@ -1,5 +1,5 @@
-"""The fast path of ordinary motion blocks (onlinecal.ukf.fastpath: two compiled calls per block) against the
-numpy reference path and against the compiled path without it: whole replays — a cold-started flight
+"""The fast path (onlinecal.ukf.fastpath: a motion block in two compiled calls, a rest block's update in one)
+against the numpy reference path and against the compiled path without it: whole replays — a cold-started flight
 (rests, the magnetometer's cold start), a paper session with a magnetic disturbance, and a forced
 divergence — end with the same state x, covariance P and events.
 
@@ -26,19 +26,22 @@ from onlinecal.ukf.layout import ATT
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed: only the numpy path exists")
 
 
-def _run(data, backend: str, fast: bool, init=None, chunk: int | None = None, force_div_at: float | None = None):
-    """Replay ``data`` on ``backend`` with the fast path on or off; returns the calibrator and how many blocks
-    took the fast path. ``force_div_at``: from that log time on, every NIS record declares a divergence
-    (once), as tests/test_robust_divergence.py does."""
-    calls = {"n": 0}
-    real = fastpath.motion_step_fast
+def _run(data, backend: str, fast: bool, init=None, force_div_at: float | None = None):
+    """Replay ``data`` on ``backend`` with the fast path on or off; returns the calibrator and how many
+    motion blocks and rest blocks took the fast path. ``force_div_at``: from that log time on, the first NIS
+    record declares a divergence, as tests/test_robust_divergence.py does."""
+    calls = {"motion": 0, "rest": 0}
+    real = {"motion": fastpath.motion_step_fast, "rest": fastpath.rest_update_fast}
 
-    def counted(*a, **k):
-        calls["n"] += 1
-        return real(*a, **k)
+    def counter(kind: str):
+        def counted(*a, **k):
+            calls[kind] += 1
+            return real[kind](*a, **k)
+        return counted
 
     old = fastpath.set_enabled(fast)
-    fastpath.motion_step_fast = counted
+    fastpath.motion_step_fast = counter("motion")
+    fastpath.rest_update_fast = counter("rest")
     try:
         with kernels.use_backend(backend):
             cal = OnlineCalibrator(init)
@@ -62,8 +65,9 @@ def _run(data, backend: str, fast: bool, init=None, chunk: int | None = None, fo
             cal.flush()
     finally:
         fastpath.set_enabled(old)
-        fastpath.motion_step_fast = real
-    return cal, calls["n"]
+        fastpath.motion_step_fast = real["motion"]  # type: ignore[assignment]
+        fastpath.rest_update_fast = real["rest"]  # type: ignore[assignment]
+    return cal, calls
 
 
 def _assert_same(a: OnlineCalibrator, b: OnlineCalibrator, rtol: float = 1e-9, rtol_P: float = 1e-8) -> None:
@@ -83,16 +87,16 @@ def _assert_same(a: OnlineCalibrator, b: OnlineCalibrator, rtol: float = 1e-9, r
 
 @pytest.mark.parametrize("profile, seconds, event", [("flight", 60.0, "vehicle"), ("paper", 110.0, "mag_cold_start")])
 def test_cold_start_fast_path_equals_the_numpy_reference(profile: str, seconds: float, event: str) -> None:
-    """Cold start: 60 s of a simulated 200 Hz flight (motion, rests on the general path, the vehicle
-    detector fed by the fast path's deviation) and 110 s of the paper session (static positions, turns,
-    the magnetometer's cold start and then its updates on the fast path)."""
+    """Cold start: 60 s of a simulated 200 Hz flight (motion, rests, the vehicle detector fed by the fast
+    path's deviation) and 110 s of the paper session (static positions, turns, the magnetometer's cold start
+    and then its updates, with the hold offsets of its coarse lattice, on the fast path)."""
     d = (simulate("flight", 3, duration=seconds, imu_rate=200) if profile == "flight"
          else simulate("paper", 1, duration=seconds)).data
     fast, n_fast = _run(d, "numba", True)
     ref, n_ref = _run(d, "numpy", False)
     slow, n_slow = _run(d, "numba", False)
-    assert n_ref == 0 and n_slow == 0
-    assert n_fast > 100 and n_fast < fast._n_blocks  # rests took the general path
+    assert sum(n_ref.values()) == 0 and sum(n_slow.values()) == 0
+    assert n_fast["motion"] > 100 and n_fast["rest"] > 50  # motion and rests both on the fast path
     assert any(e["kind"] == event for e in ref.events), ref.events
     _assert_same(fast, ref)
     _assert_same(fast, slow)
@@ -105,7 +109,7 @@ def test_paper_session_with_a_magnetic_disturbance_fast_path_equals_the_numpy_re
     sim = simulate("paper", 1, duration=80.0, effects=[eff])
     fast, n_fast = _run(sim.data, "numba", True, init=sim.truth.calibration)
     ref, _ = _run(sim.data, "numpy", False, init=sim.truth.calibration)
-    assert n_fast > 100
+    assert n_fast["motion"] > 100 and n_fast["rest"] > 50
     kinds = [e["kind"] for e in ref.events]
     assert "mag_disturbance" in kinds, kinds
     _assert_same(fast, ref)
@@ -117,7 +121,7 @@ def test_a_forced_divergence_restarts_both_paths_alike() -> None:
     d = simulate("flight", 5, duration=50, imu_rate=200).data
     fast, n_fast = _run(d, "numba", True, force_div_at=30.0)
     ref, _ = _run(d, "numpy", False, force_div_at=30.0)
-    assert n_fast > 100
+    assert n_fast["motion"] > 100
     assert sum(e["kind"] == "divergence" for e in ref.events) >= 1
     _assert_same(fast, ref)
 

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from . import kernels
 from .kernels import _njit
-from .kernels_propagate import model_pair_kernel, propagate_kernel, rot_log_rel_kernel
+from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_kernel, rot_log_rel_kernel
 from .kernels_unscented import _STATUS, _identity
 from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
 from .layout import DIP, SENSOR_SLICE
@@ -49,6 +49,7 @@ from .unscented import UpdateResult
 if TYPE_CHECKING:
     from .blocks import Blocks
     from .filter import OnlineCalibrator
+    from .rest import RestAccumulator
 
 Array = NDArray[np.float64]
 
@@ -388,4 +389,161 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
             res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
     gated_bookkeeping(cal, res, tl, True, k_v)
     if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands
+        commit_folded(cal, R_new, x, P, fine, tl)
+
+
+# ------------------------------------------------------------------------------------------------
+# the rest step's update (:func:`.step.rest_step` after the running means are formed)
+@_njit
+def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.intp], R_nom: Array, Wm: Array,
+                       Wc: Array, has_acc: bool, a_mean: Array, sig_a: float, has_mag: bool, m_mean: Array,
+                       var_mag: float, w_mean: Array, var_rest: float, hold_acc: int, hold_mag: int, hold_gyr: int,
+                       gravity: float, dev_gain: float, gates: Array, consider: NDArray[np.bool_], yaw_var: float,
+                       g0: int, a0: int, m0: int, dip_col: int
+                       ) -> tuple[bool, Array, Array, Array, NDArray[np.int64], Array, Array, bool, Array, bool]:
+    """The rest's measurement on the state the rest began with (:func:`.step.rest_step`), one call.
+
+    Sigma points of (x0 (n,), P0 (n, n)) (scale = λ + n, Cholesky order ``order``), their attitudes
+    R_nom exp([δθ]_x), the measurements of :func:`.measurements.rest_measurements` — the rest's mean accel
+    a_mean (3,) against g Rᵀe_z with the quasi-static R (noise σ sig_a), where has_acc; its mean mag m_mean
+    against Rᵀh_world(dip) with R = var_mag, where has_mag; the mean raw rate w_mean against the gyro bias
+    with R = var_rest (not gated); each plus its hold offset (column ≥ 0) — the static update with the
+    posterior's predicted measurements (:func:`.kernels_update.update_kernel`, want_post), and the fold
+    (:func:`fold_kernel`). g0, a0, m0 the sensors' first columns, dip_col the dip's.
+
+    Returns (ok: P0 positive definite, x (n,), P (n, n) folded, NIS, status, post_z, post_P as update_kernel,
+    whether the solve succeeded, R (3, 3), whether x and P are finite with a positive diagonal).
+    """
+    X, ok = sigma_points_kernel(x0, P0, scale, order)
+    S, n = X.shape
+    nb = int(has_acc) + int(has_mag) + 1
+    if not ok:
+        return (False, x0.copy(), P0.copy(), np.zeros(nb), np.full(nb, -1, np.int64), np.zeros((nb, 3)),
+                np.zeros((nb, 3, 3)), True, R_nom.copy(), False)
+    p = np.empty((2 * S, 12))
+    for s in range(S):
+        for k in range(12):
+            p[s, k] = X[s, a0 + k]
+            p[S + s, k] = X[s, m0 + k]
+    o, M, Mi = model_pair_kernel(p)
+    Rs = np.empty((S, 3, 3))
+    Rd = np.empty((3, 3))
+    for s in range(S):
+        _rodrigues_into(X[s, 0], X[s, 1], X[s, 2], Rd)
+        for i in range(3):
+            for j in range(3):
+                Rs[s, i, j] = R_nom[i, 0] * Rd[0, j] + R_nom[i, 1] * Rd[1, j] + R_nom[i, 2] * Rd[2, j]
+    z = np.empty(3 * nb)
+    Z = np.empty((S, 3 * nb))
+    r = np.empty(3 * nb)
+    gated = np.ones(nb, np.bool_)
+    droppable = np.zeros(nb, np.bool_)
+    gk = np.empty(nb)
+    k = 0
+    if has_acc:
+        f_all = np.empty((S, 3))
+        for s in range(S):
+            for i in range(3):
+                f_all[s, i] = (M[s, i, 0] * (a_mean[0] - o[s, 0]) + M[s, i, 1] * (a_mean[1] - o[s, 1])
+                               + M[s, i, 2] * (a_mean[2] - o[s, 2]))
+        dev = _deviation(f_all, Wm, Wc, sig_a, gravity)
+        var_a = sig_a**2 + (dev_gain * dev) ** 2 + 2.0 * gravity * dev
+        for s in range(S):
+            for i in range(3):
+                Z[s, i] = (Mi[s, i, 0] * (gravity * Rs[s, 2, 0]) + Mi[s, i, 1] * (gravity * Rs[s, 2, 1])
+                           + Mi[s, i, 2] * (gravity * Rs[s, 2, 2])) + o[s, i]
+                if hold_acc >= 0:
+                    Z[s, i] = Z[s, i] + X[s, hold_acc + i]
+        for i in range(3):
+            z[i] = a_mean[i]
+            r[i] = var_a
+        gk[0] = gates[0]
+        k = 1
+    if has_mag:
+        c = 3 * k
+        for s in range(S):
+            cd, sd = math.cos(X[s, dip_col]), math.sin(X[s, dip_col])
+            t = S + s
+            h0 = cd * Rs[s, 1, 0] - sd * Rs[s, 2, 0]
+            h1 = cd * Rs[s, 1, 1] - sd * Rs[s, 2, 1]
+            h2 = cd * Rs[s, 1, 2] - sd * Rs[s, 2, 2]
+            for i in range(3):
+                Z[s, c + i] = (Mi[t, i, 0] * h0 + Mi[t, i, 1] * h1 + Mi[t, i, 2] * h2) + o[t, i]
+                if hold_mag >= 0:
+                    Z[s, c + i] = Z[s, c + i] + X[s, hold_mag + i]
+        for i in range(3):
+            z[c + i] = m_mean[i]
+            r[c + i] = var_mag
+        gk[k] = gates[1]
+        k += 1
+    c = 3 * k
+    for s in range(S):
+        for i in range(3):
+            Z[s, c + i] = X[s, g0 + i]
+            if hold_gyr >= 0:
+                Z[s, c + i] = Z[s, c + i] + X[s, hold_gyr + i]
+    for i in range(3):
+        z[c + i] = w_mean[i]
+        r[c + i] = var_rest
+    gated[k] = False
+    gk[k] = np.inf
+    Y = np.empty((S, n))
+    for s in range(S):
+        for j in range(n):
+            Y[s, j] = X[s, j] - x0[j]
+    x, P, nis, status, post_z, post_P, solved = update_kernel(Y, x0, P0, z, Z, r, Wm, Wc, gated, droppable, gk,
+                                                              consider, 0.0, True)
+    xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)
+    return (True, xs, Ps, nis, status, post_z, post_P, solved, R, fine)
+
+
+def rest_applies(cal: OnlineCalibrator) -> bool:
+    """Whether a rest block's update can take :func:`rest_update_fast`: numba backend, no model extension
+    (temperature and g-sensitivity terms stay on the general path)."""
+    return enabled() and not cal.lay.ext_slice
+
+
+def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0: Array, held: dict[str, bool],
+                     first: bool, k_div: int, tl: float) -> None:
+    """The end of :func:`.step.rest_step` (sigma points, rest measurements, the gated update, its NIS
+    bookkeeping, the fold and commit) with the arithmetic in :func:`rest_update_kernel`; ``k_div`` the
+    divergence count before the block, ``first`` whether the rest began with this block (its NIS recorded)."""
+    from .step import commit_folded, gated_bookkeeping  # (step imports this module)
+
+    c = cal.config
+    lay = cal.lay
+    nst = lay.n
+    lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
+    order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
+    has_acc, has_mag = bool(acc.na), bool(acc.nm)
+    a_mean = acc.sa / acc.na if has_acc else np.zeros(3)
+    m_mean = acc.sm / acc.nm if has_mag else np.zeros(3)
+    s_gyr = float(np.mean(cal.x[SENSOR_SLICE["gyro"].start + 3 : SENSOR_SLICE["gyro"].start + 6]))
+    var_rest = cal._models.zr.variance(acc.nw, s_gyr)
+    gyr = cal.lay.hold_slice.get("gyro")
+    yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
+    mod = cal._models.acc
+    ok, x, P, nis, status, post_z, post_P, solved, R_new, fine = rest_update_kernel(
+        x0, P0, lam + nst, order, cal.R_nom, cal._Wm, cal._Wc, has_acc, a_mean,
+        1.0 / math.sqrt(acc.na) if has_acc else 1.0, has_mag, m_mean, 1.0 / acc.nm if has_mag else 1.0,
+        acc.sw / acc.nw, var_rest, _hold_col(cal, "accel", held), _hold_col(cal, "mag", held),
+        -1 if gyr is None else int(gyr.start), mod.gravity, mod.dev_gain,
+        np.array([cal._gates["accel"], cal._gates["mag"]]), lay.consider, yaw, _G0, _A0, _M0, DIP)
+    if not ok:
+        cal._rest_acc = None
+        cal._diverged("covariance is not positive definite", tl)
+        return
+    if not solved:
+        raise np.linalg.LinAlgError("Singular matrix")
+    res = UpdateResult(x, P)
+    names = (["accel"] if has_acc else []) + (["mag"] if has_mag else []) + ["rest"]
+    for k, s in enumerate(names):
+        if status[k] < 0:
+            continue
+        res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
+        if status[k] != 2:
+            res.post[s] = (post_z[k], post_P[k])
+    gated_bookkeeping(cal, res, tl, first, 0.0)
+    acc.post = res.post
+    if cal._div.count == k_div:  # a divergence in the update also ended the running rest
         commit_folded(cal, R_new, x, P, fine, tl)

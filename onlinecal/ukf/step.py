@@ -203,6 +203,9 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
         cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
     x0, P0 = acc.x, acc.P + np.diag(acc.q)
     cal.x, cal.P, cal.R_nom = x0.copy(), P0, acc.R_nom
+    if fastpath.rest_applies(cal):  # the rest's update in one compiled call (.fastpath)
+        fastpath.rest_update_fast(cal, acc, x0, P0, held, first, k, tl)
+        return
     try:
         X = sigma_points_of(cal)
     except np.linalg.LinAlgError:

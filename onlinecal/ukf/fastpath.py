@@ -1,5 +1,5 @@
-"""The motion step of an ordinary block in two compiled calls (issue 15): the largest piece of the
-per-block Python that could be moved into numba in this round.
+"""The filter step of an ordinary block in compiled calls (issue 15): a motion block in two, a rest block's
+update in one — the largest pieces of the per-block Python that could be moved into numba in this round.
 
 :func:`.step.motion_step` on the numba backend makes, per block, some forty small numpy and kernel calls
 (sigma points, sensor models, propagation, attitude errors, process noise, moments, the vehicle
@@ -20,11 +20,13 @@ model extensions and without a gyro hold offset (the ordinary case), :func:`moti
 
 Between the two, Python keeps what has state and events: the vehicle detector, the motion coverage, and
 after the second the NIS bookkeeping (:func:`.step.gated_update`'s loop: windows, divergence) and the
-commit's trace. The arithmetic and its order are those of the kernels the numba path already uses, so
-the results equal it to rounding (and the numpy reference within 1e-9 relative:
-``tests/test_speed_fastpath.py``). Every other block (rests, extensions, a held gyro reading, a clipped accel without a
-magnetometer, the numpy backend) takes :func:`.step.motion_step`'s general path. ``ONLINECAL_FASTPATH=0``
-(or :func:`set_enabled`) turns this path off.
+commit's trace. A rest block (:func:`.step.rest_step`) keeps its running means and NIS in Python and hands
+the update to :func:`rest_update_kernel` (sigma points, :func:`.measurements.rest_measurements`, the static
+update with the posterior's predicted measurements, the fold). The kernels called are those the numba path
+already uses, so the results equal it to rounding (and the numpy reference within 1e-9 relative:
+``tests/test_speed_fastpath.py``). Blocks with model extensions, a motion block with a held gyro reading or
+with a clipped accel and no magnetometer, and everything on the numpy backend take the general path.
+``ONLINECAL_FASTPATH=0`` (or :func:`set_enabled`) turns the fast path off.
 """
 
 from __future__ import annotations

@@ -72,7 +72,7 @@ def core_rate(size: int = 40, reps: int = 20000) -> float:
 
 
 PATHS = {"fast": ("numba", True), "numba": ("numba", False), "numpy": ("numpy", False)}
-NAMES = {"fast": "fast path (onlinecal.ukf.fastpath: ordinary motion blocks in two compiled calls)",
+NAMES = {"fast": "fast path (onlinecal.ukf.fastpath: motion and rest blocks in compiled calls)",
          "numba": "compiled kernels alone (backend numba, ONLINECAL_FASTPATH=0)",
          "numpy": "numpy reference (backend numpy)"}
 

@@ -1,13 +1,17 @@
-"""Speed of the online UKF: the compiled path, the numpy reference path, filterpy's stock per-sample loop,
-and the flop-count limit for the same state size — in one run, with the ratios between them.
+"""Speed of the online UKF: the fast path, the compiled kernels alone, the numpy reference path, filterpy's
+stock per-sample loop, and the flop-count limit for the same state size — in one run, with the ratios
+between them.
 
 A 10-minute 200 Hz flight log (simulated) is replayed in full through ``onlinecal.ukf.replay`` (one core:
-OMP/MKL/OPENBLAS/NUMBA_NUM_THREADS=1 are set before numpy loads), cold start (no ``init``), once with the
-compiled kernels (``onlinecal.ukf.kernels``, backend "numba") and once with the numpy reference (backend
-"numpy"); the two results are compared (largest difference of any estimate or σ, relative to the larger of
-the estimate and its σ). The kernels are compiled (or loaded from numba's cache) before the timing; the
-compile/load time is printed on its own line. The stock ``UnscentedKalmanFilter`` (one predict + one accel
-update per IMU sample, filterpy's per-sigma-point Python loop) is timed on a shorter stretch and its
+OMP/MKL/OPENBLAS/NUMBA_NUM_THREADS=1 are set before numpy loads), cold start (no ``init``), three times: the
+fast path (``onlinecal.ukf.fastpath``: motion and rest blocks in compiled calls), the compiled kernels alone
+(backend "numba" with the fast path off, ``ONLINECAL_FASTPATH=0``) and the numpy reference (backend
+"numpy"); each compiled result is compared with the reference (largest difference of any estimate or σ,
+relative to the larger of the estimate and its σ). ``--parts MIN`` times every part of a block (thread CPU
+clock) on the first MIN minutes; ``--profile MIN`` runs cProfile there. The kernels are compiled (or loaded
+from numba's cache) before the timing; the compile/load time is printed on its own line. The stock
+``UnscentedKalmanFilter`` (one predict + one accel update per IMU sample, filterpy's per-sigma-point Python
+loop) is timed on a shorter stretch and its
 per-sample cost extrapolated to the whole log — the output says so.
 
 The limit: the floating-point operations one filter block needs for this state size (counted below, per
@@ -18,7 +22,7 @@ a dense matrix product of the same small size (numpy/BLAS, one thread) — what 
 Times are CPU time of this process (``time.process_time``) and wall clock; on a machine shared with other
 jobs the wall clock measures the load as much as the code. Ratios are from one run.
 
-    PYTHONPATH=. python benchmarks/bench_ukf.py [--stock-samples N] [--minutes M] [--rate HZ]
+    PYTHONPATH=. python benchmarks/bench_ukf.py [--stock-samples N] [--minutes M] [--rate HZ] [--parts MIN]
 """
 
 from __future__ import annotations

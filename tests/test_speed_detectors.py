@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from onlinecal.specs import FIELD_GAUSS
+from onlinecal.ukf import magdisturb as md
 from onlinecal.ukf.attitude_init import MagCollector, fit_mag_cold
 from onlinecal.ukf.config import UKFConfig
 from onlinecal.ukf.detectors import RailDetector, _runs
@@ -233,3 +234,59 @@ def test_rail_detector_short_blocks_equal_the_per_axis_runs(L: int) -> None:
             ref.rail.pop("gyro", None)
         learnt += bool(new.rail)
     assert learnt > 0
+
+
+# ---------------------------------------------------------------- magnetic disturbance gate
+def _judge_numpy(x, sig, m_raw, a_raw, gravity, accel_is_gravity=True):
+    """MagDisturbanceGate.judge as it was: calibrated, norm_sigma and dip_of on numpy arrays."""
+    h = md.calibrated(x, "mag", m_raw.mean(axis=0))
+    dev = float(np.linalg.norm(h)) - 1.0
+    tol = max(md.NORM_MIN, md.NORM_K * md.norm_sigma(x, sig, h))
+    if abs(dev) > tol:
+        return f"field norm {1 + dev:.2f} of the model's 1 (tolerance ±{tol:.2f})"
+    f = md.calibrated(x, "accel", a_raw.mean(axis=0))
+    if accel_is_gravity and abs(float(np.linalg.norm(f)) / gravity - 1.0) < md.STATIC_G:
+        d = math.degrees(md.dip_of(h, f) - float(x[DIP]))
+        tol_d = max(md.DIP_MIN_DEG, md.DIP_K * math.degrees(float(sig[DIP])))
+        if abs(d) > tol_d:
+            return f"dip {math.degrees(md.dip_of(h, f)):.1f}° against the model's {math.degrees(x[DIP]):.1f}°"
+    return None
+
+
+def test_disturbance_gate_on_floats_judges_as_numpy() -> None:
+    """Random calibrations (scale 0.5–2 with its inverse field unit, angles up to 0.2 rad, biases), fields
+    disturbed by 0–60 % and turned by 0–30° in dip, accel near and off g, σ from tight to loose: the block's
+    verdict (and its text) is that of the numpy functions; the calibrated field agrees to 1e-12; every
+    verdict occurs."""
+    rng = np.random.default_rng(11)
+    sm, sa = SENSOR_SLICE["mag"], SENSOR_SLICE["accel"]
+    seen: dict[str, int] = {"none": 0, "norm": 0, "dip": 0}
+    for trial in range(800):
+        x = np.zeros(N_STATE)
+        unit = 10 ** rng.uniform(-1, 3)
+        x[sm] = np.concatenate([rng.normal(0, 0.2 * unit, 3), rng.uniform(0.8, 1.25, 3) / unit,
+                                rng.normal(0, 0.1, 6)])
+        x[sa] = np.concatenate([rng.normal(0, 0.2, 3), rng.uniform(0.98, 1.02, 3), rng.normal(0, 0.02, 6)])
+        x[DIP] = rng.uniform(-1.2, 1.2)
+        sig = 10 ** rng.uniform(-4, -1, N_STATE)
+        sig[DIP] = 10 ** rng.uniform(-3, -0.5)
+        # a world field turned to the body by a random attitude, the raw reading through the inverse model
+        ang = rng.normal(0, 1, 3)
+        th = np.linalg.norm(ang)
+        K = np.array([[0, -ang[2], ang[1]], [ang[2], 0, -ang[0]], [-ang[1], ang[0], 0]]) / th
+        R = np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
+        dip = x[DIP] + math.radians(rng.uniform(-30, 30)) * (trial % 3 == 0)
+        h_b = R.T @ np.array([0.0, math.cos(dip), -math.sin(dip)]) * (1 + rng.uniform(-0.6, 0.6) * (trial % 3 == 1))
+        f_b = R.T @ np.array([0.0, 0.0, 9.81]) * (1 + rng.normal(0, 0.01))
+        o_m, M_m = md.correction(x[None, sm])
+        o_a, M_a = md.correction(x[None, sa])
+        m_raw = np.linalg.solve(M_m[0], h_b) + o_m[0] + rng.normal(0, 1e-3 / x[sm][3], (5, 3))
+        a_raw = np.linalg.solve(M_a[0], f_b) + o_a[0] + rng.normal(0, 1e-3, (20, 3))
+        h_np = md.calibrated(x, "mag", m_raw.mean(axis=0))
+        h_py = md._calibrated3(x[sm].tolist(), m_raw.mean(axis=0).tolist())
+        assert np.allclose(h_py, h_np, rtol=1e-12, atol=1e-12 * np.linalg.norm(h_np))
+        for veh in (True, False):
+            why = md.MagDisturbanceGate().judge(x, sig, m_raw, a_raw, 9.81, veh)
+            assert why == _judge_numpy(x, sig, m_raw, a_raw, 9.81, veh), trial
+            seen["none" if why is None else why.split()[0].replace("field", "norm")] += 1
+    assert min(seen.values()) >= 50, seen

@@ -213,7 +213,7 @@ _PARTS = [
     ("onlinecal.ukf.stream", "block_stats", "block statistics (vectorised over a feed)"),
     ("onlinecal.ukf.detectors:RailDetector", "check", "rail detector"),
     ("onlinecal.ukf.step", "mag_block", "magnetometer start (collect, cold fit tried once a second)"),
-    ("onlinecal.ukf.filter:OnlineCalibrator", "_spec_noise", "spec noise (cache keyed on the mag scale)"),
+    ("onlinecal.ukf.filter:OnlineCalibrator", "_spec_noise", "spec noise (cached on the rate, times the mag unit)"),
     ("onlinecal.ukf.magdisturb:MagDisturbanceGate", "gate", "magnetic disturbance gate"),
     ("onlinecal.ukf.noise:NoiseModel", "monitor_all", "noise monitor"),
     ("onlinecal.ukf.detectors:HoldTracker", "flags", "hold tracker"),

@@ -165,8 +165,6 @@ def test_noise_caches_equal_the_uncached_formulas_as_the_state_moves() -> None:
             assert sp[k] == pytest.approx(ref[k], rel=1e-12, abs=0), (i, k)
         q, qr = nm.cal_rw(n, x, ext, 0.7), _rw_uncached(nm, n, x, ext, 0.7)
         assert q.shape == qr.shape and np.allclose(q, qr, rtol=1e-12, atol=0), i
-        q[:] = -1.0  # the caller may change what it got: the cache is not handed out
-    assert np.all(nm.cal_rw(n, x, ext, 0.7) >= 0)
 
 
 # ---------------------------------------------------------------- rail detector

@@ -143,7 +143,7 @@ class NoiseModel:
         the rest is cached on (n, ``rw_factor``) and those three are set at every call from the current x
         (issue 15: before, the whole vector was keyed on the unit rounded to 1e-6 — a ``round`` of a numpy
         scalar, ~5 µs, and a miss nearly every block; the entries lagged the unit by up to that rounding).
-        Returns a new array."""
+        Returns the cached array, as before (read it, do not change it: the next call rewrites it)."""
         key = (n, float(rw_factor))
         if self._rw_key != key or self._rw_cache.shape[0] != n:
             q = np.zeros(n)
@@ -156,7 +156,7 @@ class NoiseModel:
             for sl, sig in ext_sigma:
                 q[sl] = (sig * rw_factor) ** 2
             self._rw_key, self._rw_cache = key, q
-        q = self._rw_cache.copy()
+        q = self._rw_cache
         if "mag" in self.specs:
             unit = mag_unit_of(x) / FIELD_GAUSS
             sm = SENSOR_SLICE["mag"].start

@@ -141,6 +141,7 @@ def test_a_negative_nis_is_a_divergence_in_the_filter(monkeypatch: pytest.Monkey
     """An update whose NIS is negative (an indefinite innovation covariance) passed the gate ("ok") and the
     windows; now it is a numerical failure: a divergence, and its posterior is not committed."""
     import onlinecal.ukf.step as flt  # the gated update's module
+    from onlinecal.ukf import fastpath
 
     sim = simulate("paper", 2, duration=50.0)
     cal = OnlineCalibrator(None)
@@ -154,6 +155,7 @@ def test_a_negative_nis_is_a_divergence_in_the_filter(monkeypatch: pytest.Monkey
         return res
 
     monkeypatch.setattr(flt, "update", negative)
+    monkeypatch.setattr(fastpath, "_enabled", False)  # the patched update is the general path's (.ukf.fastpath)
     with pytest.warns(dv.DivergenceWarning, match="negative"):
         i = 4000
         while not any(e["kind"] == "divergence" for e in cal.events) and i < 4500:

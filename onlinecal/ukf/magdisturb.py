@@ -92,6 +92,27 @@ def calibrated(x: Array, sensor: str, raw_mean: Array) -> Array:
     return out
 
 
+def _calibrated3(p: list[float], raw: list[float]) -> tuple[float, float, float]:
+    """:func:`calibrated` on Python floats: p the sensor's 12 terms (o, s, alpha, xi), raw (3,) a block
+    mean; M (raw − o) with M = S T_R(alpha) T_N(xi) (eqs. 1–6, :func:`onlinecal.model.model_matrices`'s
+    closed forms), applied as T_N, then T_R, then S."""
+    v0, v1, v2 = raw[0] - p[0], raw[1] - p[1], raw[2] - p[2]
+    cf, sf, ct, st = math.cos(p[6]), math.sin(p[6]), math.cos(p[7]), math.sin(p[7])
+    cp, sp = math.cos(p[8]), math.sin(p[8])
+    sx, sy, sz = math.sin(p[9]), math.sin(p[10]), math.sin(p[11])
+    cx, cy, cz = math.cos(p[9]), math.cos(p[10]), math.cos(p[11])
+    b, c, d, e, f = sz, cz, -sy, sx * cy, cx * cy
+    # T_N = A⁻¹, lower triangular (eq. 6)
+    w0 = v0
+    w1 = -b / c * v0 + v1 / c
+    w2 = (b * e - c * d) / (c * f) * v0 - e / (c * f) * v1 + v2 / f
+    # T_R = Rz Ry Rx (eqs. 3–4)
+    r0 = cp * ct * w0 + (cp * st * sf - sp * cf) * w1 + (cp * st * cf + sp * sf) * w2
+    r1 = sp * ct * w0 + (sp * st * sf + cp * cf) * w1 + (sp * st * cf - cp * sf) * w2
+    r2 = -st * w0 + ct * sf * w1 + ct * cf * w2
+    return p[3] * r0, p[4] * r1, p[5] * r2
+
+
 def dip_of(h: Array, f: Array) -> float:
     """Dip (rad) of the field h (3,) below the horizontal, with f (3,) the specific force at rest (up)."""
     c = float(h @ f) / max(float(np.linalg.norm(h) * np.linalg.norm(f)), 1e-12)
@@ -124,18 +145,37 @@ class MagDisturbanceGate:
         of the block; x, sig (n,) the state and its σ; ``gravity`` m/s². ``accel_is_gravity`` False (a
         vehicle in motion, :mod:`.vehicle`): the dip is not judged, since a specific force of norm g can
         still be thrust and acceleration tilted away from gravity (a multirotor accelerating at 2 m/s²
-        passes the 2 % norm test with its force 11° off the vertical)."""
-        h = calibrated(x, "mag", m_raw.mean(axis=0))
-        dev = float(np.linalg.norm(h)) - 1.0
-        tol = max(NORM_MIN, NORM_K * norm_sigma(x, sig, h))
+        passes the 2 % norm test with its force 11° off the vertical).
+
+        The arithmetic of :func:`calibrated`, :func:`norm_sigma` and :func:`dip_of` on Python floats
+        (:func:`_calibrated3`; issue 15: numpy's calls on 3-vectors were 18 % of a paper session's replay);
+        it agrees with them to rounding (tests/test_speed_detectors.py)."""
+        sl, sa = SENSOR_SLICE["mag"], SENSOR_SLICE["accel"]
+        pm = x[sl].tolist()
+        h = _calibrated3(pm, m_raw.mean(axis=0).tolist())
+        nh = math.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
+        dev = nh - 1.0
+        # norm_sigma: δ‖h‖ = ĥ·(M δ(m − o)), M ≈ diag(scale)
+        sg = sig[sl].tolist()
+        inv = 1.0 / max(nh, 1e-12)
+        var = 0.0
+        for i in range(3):
+            ui, si = h[i] * inv, pm[3 + i]
+            var += (ui * si * sg[i]) ** 2 + (ui * h[i] * sg[3 + i] / (si if si != 0 else 1.0)) ** 2
+        tol = max(NORM_MIN, NORM_K * math.sqrt(var))
         if abs(dev) > tol:
             return f"field norm {1 + dev:.2f} of the model's 1 (tolerance ±{tol:.2f})"
-        f = calibrated(x, "accel", a_raw.mean(axis=0))
-        if accel_is_gravity and abs(float(np.linalg.norm(f)) / gravity - 1.0) < STATIC_G:
-            d = math.degrees(dip_of(h, f) - float(x[DIP]))
+        if not accel_is_gravity:
+            return None
+        f = _calibrated3(x[sa].tolist(), a_raw.mean(axis=0).tolist())
+        nf = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+        if abs(nf / gravity - 1.0) < STATIC_G:
+            c = (h[0] * f[0] + h[1] * f[1] + h[2] * f[2]) / max(nh * nf, 1e-12)
+            dip = -math.asin(min(1.0, max(-1.0, c)))
+            d = math.degrees(dip - float(x[DIP]))
             tol_d = max(DIP_MIN_DEG, DIP_K * math.degrees(float(sig[DIP])))
             if abs(d) > tol_d:
-                return f"dip {math.degrees(dip_of(h, f)):.1f}° against the model's {math.degrees(x[DIP]):.1f}°"
+                return f"dip {math.degrees(dip):.1f}° against the model's {math.degrees(x[DIP]):.1f}°"
         return None
 
     def gate(self, use_mag: bool, x: Array, sig: Array, m_raw: Array, a_raw: Array, t: float, gravity: float,

@@ -69,9 +69,14 @@ def lattice_plan(q: dict[str, Any], sensors: tuple[str, ...], rate: float, mag_u
     return [(s, bool(q[s] > 1.5 * own[s]), hold_sigma(q[s], white[s])) for s in sensors]
 
 
+_S0 = SENSOR_SLICE["mag"].start + 3  # the mag's scale in the state
+
+
 def mag_unit_of(x: Array) -> float:
-    """Raw magnitude of the unit field: 1 / mean mag scale of the state x."""
-    return float(1.0 / np.mean(x[SENSOR_SLICE["mag"]][3:6]))
+    """Raw magnitude of the unit field: 1 / mean mag scale of the state x (n,). The mean as numpy forms it
+    for three numbers, ((s_x + s_y) + s_z) / 3, in Python floats: the same bits, a tenth of the cost."""
+    sx, sy, sz = x[_S0 : _S0 + 3].tolist()
+    return 1.0 / ((sx + sy + sz) / 3.0)
 
 
 def raw_field_unit(x: Array, mag_enabled: bool, first_raw: list[list[float]]) -> float:
@@ -99,20 +104,23 @@ class NoiseModel:
 
     def spec_noise(self, rate: float | None, x: Array) -> dict[str, float]:
         """Per-sample σ of the raw readings from the specs (white noise + the sensor's own quantisation);
-        the mag's relative to the field, in the raw unit of the state x (gauss or milli-gauss)."""
+        the mag's relative to the field, in the raw unit of the state x (gauss or milli-gauss).
+
+        Cached on what the values depend on (issue 15): the rate (key ``(rate, 0.0)``); the mag's σ per
+        unit field is cached and multiplied by the state's unit (:func:`mag_unit_of`) at every call — the
+        same product as the uncached formula, so the same bits. (Keyed on the mag scale, the cache missed
+        nearly every block: every update moves the scale.)"""
         r = rate or 100.0
-        s0 = SENSOR_SLICE["mag"].start + 3
-        key = (r, float(x[s0] + x[s0 + 1] + x[s0 + 2]))
-        if self._spec_key == key:
-            return dict(self._spec_cache)
-        self._spec_key = key
-        g, a, m = self.specs["gyro"], self.specs["accel"], self.specs["mag"]
-        self._spec_cache = {
-            "gyro": math.hypot(g.sigma(r), g.lsb / math.sqrt(12)),
-            "accel": math.hypot(a.sigma(r), a.lsb / math.sqrt(12)),
-            "mag": math.hypot(m.sigma(50.0), m.lsb / math.sqrt(12)) / FIELD_GAUSS * mag_unit_of(x),
-        }
-        return dict(self._spec_cache)
+        if self._spec_key is None or self._spec_key[0] != r or self._spec_key[1] != 0.0:
+            g, a, m = self.specs["gyro"], self.specs["accel"], self.specs["mag"]
+            self._spec_key = (r, 0.0)
+            self._spec_cache = {
+                "gyro": math.hypot(g.sigma(r), g.lsb / math.sqrt(12)),
+                "accel": math.hypot(a.sigma(r), a.lsb / math.sqrt(12)),
+                "mag": math.hypot(m.sigma(50.0), m.lsb / math.sqrt(12)) / FIELD_GAUSS,  # per unit field
+            }
+        sc = self._spec_cache
+        return {"gyro": sc["gyro"], "accel": sc["accel"], "mag": sc["mag"] * mag_unit_of(x)}
 
     def noise(self, spec: dict[str, float], q: dict[str, Any]) -> dict[str, float]:
         """Per-sample σ used by the filter: the spec's, the format's re-quantisation (q²/12, white part)
@@ -129,23 +137,36 @@ class NoiseModel:
         """Random-walk variance per second of every state (n,) (attitude entries 0): density × ``rw_factor``
         per √s (bias), density/full-scale × ``rw_factor`` (dimensionless terms) — a slow drift allowance set
         from the specs, not tuned per log; extensions (``ext_sigma``: (slice, prior σ)) their prior σ ×
-        ``rw_factor``; hold offsets none (a held value's error is constant)."""
-        s0 = SENSOR_SLICE["mag"].start + 3
-        key = (n, round(3.0 / (x[s0] + x[s0 + 1] + x[s0 + 2]), 6))  # the mag unit
-        if self._rw_key == key:
-            return self._rw_cache
-        q = np.zeros(n)
-        for s, spec in self.specs.items():
-            dens = spec.density if spec.density > 0 else spec.sigma(50.0) / math.sqrt(25.0)
-            unit = mag_unit_of(x) / FIELD_GAUSS if s == "mag" else 1.0
-            sl = SENSOR_SLICE[s]
-            q[sl.start : sl.start + 3] = (dens * unit * rw_factor) ** 2
-            q[sl.start + 3 : sl.stop] = (dens / spec.full_scale * rw_factor) ** 2
-        q[DIP] = (1e-6) ** 2
-        for sl, sig in ext_sigma:
-            q[sl] = (sig * rw_factor) ** 2
-        self._rw_key, self._rw_cache = key, q
+        ``rw_factor``; hold offsets none (a held value's error is constant).
+
+        Only the mag bias's entries depend on the state (through the raw unit of the field, x's mag scale):
+        the rest is cached on (n, ``rw_factor``) and those three are set at every call from the current x
+        (issue 15: before, the whole vector was keyed on the unit rounded to 1e-6 — a ``round`` of a numpy
+        scalar, ~5 µs, and a miss nearly every block; the entries lagged the unit by up to that rounding).
+        Returns the cached array, as before (read it, do not change it: the next call rewrites it)."""
+        key = (n, float(rw_factor))
+        if self._rw_key != key or self._rw_cache.shape[0] != n:
+            q = np.zeros(n)
+            for s, spec in self.specs.items():
+                sl = SENSOR_SLICE[s]
+                dens = self._density(spec)
+                q[sl.start : sl.start + 3] = (dens * rw_factor) ** 2  # the mag's replaced below
+                q[sl.start + 3 : sl.stop] = (dens / spec.full_scale * rw_factor) ** 2
+            q[DIP] = (1e-6) ** 2
+            for sl, sig in ext_sigma:
+                q[sl] = (sig * rw_factor) ** 2
+            self._rw_key, self._rw_cache = key, q
+        q = self._rw_cache
+        if "mag" in self.specs:
+            unit = mag_unit_of(x) / FIELD_GAUSS
+            sm = SENSOR_SLICE["mag"].start
+            q[sm : sm + 3] = (self._density(self.specs["mag"]) * unit * rw_factor) ** 2
         return q
+
+    @staticmethod
+    def _density(spec: SensorSpec) -> float:
+        """Noise density of ``spec`` (its white σ at 50 Hz over √25 where none is given)."""
+        return spec.density if spec.density > 0 else spec.sigma(50.0) / math.sqrt(25.0)
 
     @staticmethod
     def process_noise(cal_rw: Array, dt: float, rate: float | None, sigma_gyr: float) -> Array:

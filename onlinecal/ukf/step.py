@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..model import SENSORS
-from . import divergence
+from . import divergence, fastpath
 from .attitude_init import fold_attitude
 from .blocks import Blocks
 from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from .filter import OnlineCalibrator
 
 Array = NDArray[np.float64]
+_UNJUDGED: Array = np.empty(0)  # the σ handed to the disturbance gate for a block it does not judge
 
 
 def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T_all: Array, tm_all: Array,
@@ -48,7 +49,9 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
     tl = float(t[-1])
     use_mag, mag_changed = mag_block(cal, tm_all[ml:mh], m_all[ml:mh], tl)
-    use_mag = cal._magd.gate(use_mag, cal.x, cal.sigma(), m_all[ml:mh], a, tl, c.gravity, cal._event,
+    # σ is read only where the block's field is judged (a used mag with samples): not computed otherwise
+    sig = cal.sigma() if use_mag and mh > ml else _UNJUDGED
+    use_mag = cal._magd.gate(use_mag, cal.x, sig, m_all[ml:mh], a, tl, c.gravity, cal._event,
                              nis_in_order(cal._nis.stats, cal._nis.band()[1]),  # a magnetic disturbance
                              accel_is_gravity=not cal._vehicle.active)
     spec = cal._spec_noise()
@@ -113,6 +116,15 @@ def vehicle_accel(cal: OnlineCalibrator, M: Array, o: Array, a_mean: Array, sig_
     return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt) if cal._vehicle.active else 0.0
 
 
+def vehicle_accel_from_dev(cal: OnlineCalibrator, dev: float, dt: float, tl: float) -> float:
+    """:func:`vehicle_accel` with the specific force's deviation ``dev`` (m/s²) already computed
+    (:func:`.fastpath.predict_kernel`)."""
+    c = cal.config
+    if c.vehicle == "auto" and not cal._vehicle.active:
+        vehicle_event(cal, cal._vehicle.update(math.nan, dev, tl), tl)
+    return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt) if cal._vehicle.active else 0.0
+
+
 def vehicle_event(cal: OnlineCalibrator, why: str | None, tl: float) -> None:
     if why:
         cal._event("vehicle", why + VEHICLE_NOTE, tl)
@@ -121,6 +133,9 @@ def vehicle_event(cal: OnlineCalibrator, why: str | None, tl: float) -> None:
 def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T: Array, n: dict[str, float],
                 held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
     """Predict over the block, then one update with its mean accel (unless clipped) and mag."""
+    if fastpath.applies(cal, held, use_mag, clip):  # an ordinary block: two compiled calls (.fastpath)
+        fastpath.motion_step_fast(cal, B, b, t, n, held, use_mag, clip)
+        return
     tl = float(t[-1])
     try:
         X = sigma_points_of(cal)
@@ -188,6 +203,9 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
         cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
     x0, P0 = acc.x, acc.P + np.diag(acc.q)
     cal.x, cal.P, cal.R_nom = x0.copy(), P0, acc.R_nom
+    if fastpath.rest_applies(cal):  # the rest's update in one compiled call (.fastpath)
+        fastpath.rest_update_fast(cal, acc, x0, P0, held, first, k, tl)
+        return
     try:
         X = sigma_points_of(cal)
     except np.linalg.LinAlgError:
@@ -217,11 +235,17 @@ def gated_update(cal: OnlineCalibrator, Y: Array, x_pred: Array, P_pred: Array, 
     the accel R carried the vehicle disturbance, :meth:`.health.NisMonitor.record`)."""
     res = update(Y, x_pred, P_pred, meas, cal._Wm, cal._Wc, Gating(cal._gates, static),
                  cal.lay.consider, damp, post)
+    gated_bookkeeping(cal, res, t, record, inflated)
+    return res
+
+
+def gated_bookkeeping(cal: OnlineCalibrator, res: UpdateResult, t: float, record: bool, inflated: float) -> None:
+    """The NIS bookkeeping of :func:`gated_update` for its result ``res``, in measurement order."""
     for s, nis, status in res.nis:
         fail = divergence.nis_failure(nis)
         if fail is not None:  # passes both the gate and the windows otherwise
             cal._diverged(f"{s}: {fail}", t)
-            return res
+            return
         if status == "drop":
             # motion the model has no term for (linear acceleration): an outlier, not a statistic of
             # the filter's consistency — dropped and counted, kept out of the NIS windows
@@ -231,7 +255,6 @@ def gated_update(cal: OnlineCalibrator, Y: Array, x_pred: Array, P_pred: Array, 
             cal._nis_record(s, nis, t, inflated)
         if status == "soft":
             cal._nis.reject(s, inflated)
-    return res
 
 
 def commit(cal: OnlineCalibrator, x_new: Array, P_new: Array, tl: float) -> None:
@@ -241,10 +264,17 @@ def commit(cal: OnlineCalibrator, x_new: Array, P_new: Array, tl: float) -> None
     c = cal.config
     # Without a usable mag nothing sees the heading, exactly (a world-z turn leaves Rᵀe_z alone): it is
     # forgotten, with a diffuse σ (a small one would leak spurious information into the alphas)
-    cal.R_nom, x_new, P_new = fold_attitude(cal.R_nom, x_new, P_new,
-                                            c.yaw_free_sigma**2 if cal._mag.yaw_free else None, ATT)
-    if (not np.isfinite(x_new).all() or not np.isfinite(P_new).all()
-            or not (P_new.diagonal() > 0).all()):
+    R, x_new, P_new = fold_attitude(cal.R_nom, x_new, P_new,
+                                    c.yaw_free_sigma**2 if cal._mag.yaw_free else None, ATT)
+    fine = bool(np.isfinite(x_new).all() and np.isfinite(P_new).all() and (P_new.diagonal() > 0).all())
+    commit_folded(cal, R, x_new, P_new, fine, tl)
+
+
+def commit_folded(cal: OnlineCalibrator, R: Array, x_new: Array, P_new: Array, fine: bool, tl: float) -> None:
+    """:func:`commit` after the fold (R (3, 3), x, P folded; ``fine``: finite with a positive diagonal)."""
+    c = cal.config
+    cal.R_nom = R
+    if not fine:
         cal._diverged("non-finite state or non-positive variance", tl)
         return
     cal.x, cal.P = x_new, P_new

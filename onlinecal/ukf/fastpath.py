@@ -1,0 +1,551 @@
+"""The filter step of an ordinary block in compiled calls (issue 15): a motion block in two, a rest block's
+update in one — the largest pieces of the per-block Python that could be moved into numba in this round.
+
+:func:`.step.motion_step` on the numba backend makes, per block, some forty small numpy and kernel calls
+(sigma points, sensor models, propagation, attitude errors, process noise, moments, the vehicle
+deviation, measurements, update, attitude fold, heading marginalisation, checks). For a block without
+model extensions and without a gyro hold offset (the ordinary case), :func:`motion_step_fast` replaces them by
+
+1. :func:`predict_kernel` — sigma points (:func:`.kernels_update.sigma_points_kernel`), eqs. 1–6 for the
+   dynamic points' gyro and every point's accel and mag (:func:`.kernels_propagate.model_pair_kernel`),
+   the propagation (:func:`.kernels_propagate.propagate_kernel`), the attitude errors
+   (:func:`.kernels_propagate.rot_log_rel_kernel`), the block's process noise
+   (:func:`.predict.block_process_noise` with :func:`.noise.bilinear_var`), the unscented moments
+   (:func:`.kernels_update.unscented_kernel`), the mean's turn rate and the quasi-static deviation of the
+   specific force (:meth:`.measurements.AccelModel.deviation`);
+2. :func:`update_fold_kernel` — the motion measurements (:func:`.measurements.motion_measurements`: the
+   accel's quasi-static R, h(x) of accel and mag), the gated update
+   (:func:`.kernels_update.update_kernel`) and the USQUE fold of the posterior
+   (:func:`.attitude_init.fold_attitude`, :func:`.attitude_init.set_yaw_variance`) with its finiteness check.
+
+Between the two, Python keeps what has state and events: the vehicle detector, the motion coverage, and
+after the second the NIS bookkeeping (:func:`.step.gated_update`'s loop: windows, divergence) and the
+commit's trace. A rest block (:func:`.step.rest_step`) keeps its running means and NIS in Python and hands
+the update to :func:`rest_update_kernel` (sigma points, :func:`.measurements.rest_measurements`, the static
+update with the posterior's predicted measurements, the fold). The kernels called are those the numba path
+already uses, so the results equal it to rounding (and the numpy reference within 1e-9 relative:
+``tests/test_speed_fastpath.py``). Blocks with model extensions, a motion block with a held gyro reading or
+with a clipped accel and no magnetometer, and everything on the numpy backend take the general path.
+``ONLINECAL_FASTPATH=0`` (or :func:`set_enabled`) turns the fast path off.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import kernels
+from .kernels import _njit
+from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_kernel, rot_log_rel_kernel
+from .kernels_unscented import _STATUS, _identity
+from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
+from .layout import DIP, SENSOR_SLICE
+from .predict import interp_weights
+from .start import calibrated
+from .unscented import UpdateResult
+
+if TYPE_CHECKING:
+    from .blocks import Blocks
+    from .filter import OnlineCalibrator
+    from .rest import RestAccumulator
+
+Array = NDArray[np.float64]
+
+_enabled = os.environ.get("ONLINECAL_FASTPATH", "1").strip() not in ("0", "false", "no", "off")
+_G0, _A0, _M0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["accel"].start, SENSOR_SLICE["mag"].start
+_EMPTY1 = np.zeros(1)
+_EMPTY3 = np.zeros((1, 1, 3))
+
+
+def enabled() -> bool:
+    """Whether :func:`motion_step_fast` is used for ordinary blocks on the numba backend."""
+    return _enabled and kernels.backend() == "numba"
+
+
+def set_enabled(on: bool) -> bool:
+    """Turn the fast path on or off; returns the previous setting (tests compare both)."""
+    global _enabled
+    old, _enabled = _enabled, bool(on)
+    return old
+
+
+# ------------------------------------------------------------------------------------------------
+# compiled parts
+@_njit
+def _bilinear_var(P: Array, g0: int) -> Array:
+    """:func:`.noise.bilinear_var` (3,) of P (n, n), the gyro's 12 terms from column g0."""
+    sig = np.empty(12)
+    for i in range(12):
+        sig[i] = math.sqrt(P[g0 + i, g0 + i])
+    s_ang = max(sig[6], sig[9])
+    for i in range(1, 3):
+        s_ang = max(s_ang, max(sig[6 + i], sig[9 + i]))
+    v_o = np.empty(3)
+    for i in range(3):
+        v_o[i] = sig[i] * sig[i]
+    tot = (v_o[0] + v_o[1]) + v_o[2]
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = sig[3 + i] * sig[3 + i] * v_o[i] + s_ang**2 * (tot - v_o[i])
+    return out
+
+
+@_njit
+def _rodrigues1(x: float, y: float, z: float) -> Array:
+    """:func:`.geometry.rodrigues1` (the fold's formula, series below 1e-4 rad): exp([v]_x) (3, 3)."""
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-8:
+        s, c = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
+    else:
+        a = math.sqrt(a2)
+        s, c = math.sin(a) / a, (1.0 - math.cos(a)) / a2
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = 1.0 - c * (y * y + z * z), c * x * y - s * z, c * x * z + s * y
+    R[1, 0], R[1, 1], R[1, 2] = c * x * y + s * z, 1.0 - c * (x * x + z * z), c * y * z - s * x
+    R[2, 0], R[2, 1], R[2, 2] = c * x * z - s * y, c * y * z + s * x, 1.0 - c * (x * x + y * y)
+    return R
+
+
+@_njit
+def _deviation(f_all: Array, Wm: Array, Wc: Array, sig_mean: float, gravity: float) -> float:
+    """:meth:`.measurements.AccelModel.deviation`: ||f| − g| beyond 3σ of noise and calibration spread."""
+    S = f_all.shape[0]
+    nf = np.empty(S)
+    for s in range(S):
+        nf[s] = math.sqrt(f_all[s, 0] ** 2 + f_all[s, 1] ** 2 + f_all[s, 2] ** 2)
+    nf_mean = 0.0
+    for s in range(S):
+        nf_mean += Wm[s] * nf[s]
+    var_cal = 0.0
+    for s in range(S):
+        var_cal += Wc[s] * (nf[s] - nf_mean) ** 2
+    var_cal = max(0.0, var_cal)
+    return max(0.0, abs(nf_mean - gravity) - 3.0 * math.sqrt(sig_mean**2 + var_cal))
+
+
+@_njit
+def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
+                   c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
+                   q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float,
+                   gravity: float, g0: int, a0: int, m0: int, dip_col: int
+                   ) -> tuple[bool, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, float]:
+    """The prediction of one motion block (:func:`.step.motion_step` up to the measurements), one call.
+
+    x (n,), P (n, n) the state; scale = λ + n; order the Cholesky's state order; R_nom (3, 3); w (L + 1, 3),
+    dt (L,), c_mag (L + 1,) (read when has_mag) as :func:`.kernels_propagate.propagate_kernel`; dyn the
+    dynamic sigma points; Wm, Wc the weights; q (n,) the base process noise (changed in place: + the
+    trapezoid allowance ``q_att_jerk`` and the bilinear term × dt_blk² on the attitude); w_mean (3,) the
+    block-mean raw rate; a_mean (3,) the block-mean raw accel, σ ``sig_mean``; g0, a0, m0 the sensors'
+    first columns; dip_col the dip's.
+
+    Returns (ok: P positive definite, the propagated sigma points X (S, n), x_pred (n,), Y (S, n),
+    P_pred (n, n), R_end of the mean (3, 3),
+    f_body (S, 3), h_body (S, 3), sens_o (2S, 3), sens_Minv (2S, 3, 3) of accel then mag, ω of the mean
+    (3,) rad/s, the specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
+    """
+    X, ok = sigma_points_kernel(x, P, scale, order)
+    S, Sd = X.shape[0], dyn.shape[0]
+    if not ok:
+        z3 = np.zeros((1, 3))
+        return (False, X, x.copy(), X.copy(), P.copy(), R_nom.copy(), z3, z3.copy(), z3.copy(), np.zeros((1, 3, 3)),
+                np.zeros(3), 0.0)
+    p = np.empty((Sd + 2 * S, 12))
+    for si in range(Sd):
+        for k in range(12):
+            p[si, k] = X[dyn[si], g0 + k]
+    for s in range(S):
+        for k in range(12):
+            p[Sd + s, k] = X[s, a0 + k]
+            p[Sd + S + s, k] = X[s, m0 + k]
+    o_all, M_all, Mi_all = model_pair_kernel(p)
+    o_g = o_all[:Sd].copy()
+    M_g = M_all[:Sd].copy()
+    R_end, f_body, h_body = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, _EMPTY3, False,
+                                             dip_col)
+    err = rot_log_rel_kernel(R_end)
+    for si in range(Sd):
+        for k in range(3):
+            X[dyn[si], k] = err[si, k]
+    # block process noise (.predict.block_process_noise): the trapezoid's allowance, then the bilinear term
+    bil = _bilinear_var(P, g0)
+    for k in range(3):
+        q[k] += q_att_jerk
+    for k in range(3):
+        q[k] += bil[k] * dt_blk**2
+    x_pred, Y, P_pred = unscented_kernel(X, Wm, Wc, q)
+    om = np.empty(3)
+    for i in range(3):
+        om[i] = (M_g[0, i, 0] * (w_mean[0] - o_g[0, 0]) + M_g[0, i, 1] * (w_mean[1] - o_g[0, 1])
+                 + M_g[0, i, 2] * (w_mean[2] - o_g[0, 2]))
+    f_all = np.empty((S, 3))
+    for s in range(S):
+        r = Sd + s
+        for i in range(3):
+            f_all[s, i] = (M_all[r, i, 0] * (a_mean[0] - o_all[r, 0]) + M_all[r, i, 1] * (a_mean[1] - o_all[r, 1])
+                           + M_all[r, i, 2] * (a_mean[2] - o_all[r, 2]))
+    dev = _deviation(f_all, Wm, Wc, sig_mean, gravity)
+    R0 = R_end[0].copy()
+    return (True, X, x_pred, Y, P_pred, R0, f_body, h_body, o_all[Sd:].copy(), Mi_all[Sd:].copy(), om, dev)
+
+
+@_njit
+def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_body: Array, sens_o: Array,
+                       sens_Minv: Array, z_acc: Array, use_acc: bool, var_a: float, z_mag: Array, use_mag: bool,
+                       var_mag: float, hold_acc: int, hold_mag: int, gravity: float, Wm: Array, Wc: Array, gates: Array,
+                       consider: NDArray[np.bool_], damp: float, R_nom: Array, yaw_var: float
+                       ) -> tuple[Array, Array, Array, NDArray[np.int64], bool, Array, bool]:
+    """Measurements, update and fold of one motion block, one call.
+
+    The measurements of :func:`.measurements.motion_measurements` for the propagated sigma points X (S, n)
+    (accel: raw = M⁻¹ g f_body + o, R = var_a per axis, droppable; mag: raw = M⁻¹ h_body + o, R = var_mag;
+    each plus the held reading's offset X[:, hold:hold + 3] where hold_acc / hold_mag ≥ 0; gated by ``gates``
+    (accel, mag)), the joint
+    update (:func:`.kernels_update.update_kernel`), then the posterior folded (:func:`.attitude_init.fold_attitude`:
+    P symmetrised, R = R_nom exp([δθ]_x), δθ = 0; with yaw_var ≥ 0 the heading's variance set to it,
+    :func:`.attitude_init.set_yaw_variance`).
+
+    Returns (x (n,), P (n, n) folded, NIS (blocks,), status (blocks,) as update_kernel, whether the solve
+    succeeded, R (3, 3), whether x and P are finite with a positive diagonal).
+    """
+    S = Y.shape[0]
+    nb = int(use_acc) + int(use_mag)
+    z = np.empty(3 * nb)
+    Z = np.empty((S, 3 * nb))
+    r = np.empty(3 * nb)
+    gated = np.ones(nb, np.bool_)
+    droppable = np.zeros(nb, np.bool_)
+    gk = np.empty(nb)
+    k = 0
+    if use_acc:
+        for s in range(S):
+            for i in range(3):
+                Z[s, i] = (sens_Minv[s, i, 0] * (gravity * f_body[s, 0]) + sens_Minv[s, i, 1] * (gravity * f_body[s, 1])
+                           + sens_Minv[s, i, 2] * (gravity * f_body[s, 2])) + sens_o[s, i]
+                if hold_acc >= 0:
+                    Z[s, i] = Z[s, i] + X[s, hold_acc + i]
+        for i in range(3):
+            z[i] = z_acc[i]
+            r[i] = var_a
+        droppable[0] = True
+        gk[0] = gates[0]
+        k = 1
+    if use_mag:
+        c = 3 * k
+        for s in range(S):
+            t = S + s
+            for i in range(3):
+                Z[s, c + i] = (sens_Minv[t, i, 0] * h_body[s, 0] + sens_Minv[t, i, 1] * h_body[s, 1]
+                               + sens_Minv[t, i, 2] * h_body[s, 2]) + sens_o[t, i]
+                if hold_mag >= 0:
+                    Z[s, c + i] = Z[s, c + i] + X[s, hold_mag + i]
+        for i in range(3):
+            z[c + i] = z_mag[i]
+            r[c + i] = var_mag
+        gk[k] = gates[1]
+    x, P, nis, status, _pz, _pP, ok = update_kernel(Y, x_pred, P_pred, z, Z, r, Wm, Wc, gated, droppable, gk,
+                                                    consider, damp, False)
+    xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)
+    return xs, Ps, nis, status, ok, R, fine
+
+
+@_njit
+def fold_kernel(x: Array, P: Array, R_nom: Array, yaw_var: float) -> tuple[Array, Array, Array, bool]:
+    """:func:`.attitude_init.fold_attitude` (USQUE reset) of a posterior x (n,), P (n, n) on R_nom (3, 3):
+    P symmetrised, R = R_nom exp([δθ]_x), δθ = 0 (x is not changed: a copy); with yaw_var ≥ 0 the heading's
+    knowledge replaced by that variance (:func:`.attitude_init.set_yaw_variance`). Returns (x, P, R, whether
+    x and P are finite with a positive diagonal)."""
+    n = x.shape[0]
+    Ps = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            Ps[i, j] = 0.5 * (P[i, j] + P[j, i])
+    Rd = _rodrigues1(x[0], x[1], x[2])
+    R = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = R_nom[i, 0] * Rd[0, j] + R_nom[i, 1] * Rd[1, j] + R_nom[i, 2] * Rd[2, j]
+    xs = x.copy()
+    xs[0] = 0.0
+    xs[1] = 0.0
+    xs[2] = 0.0
+    if yaw_var >= 0.0:
+        u = R[2]
+        J = np.empty((3, 3))
+        for i in range(3):
+            for j in range(3):
+                J[i, j] = (1.0 if i == j else 0.0) - u[i] * u[j]
+        rows = np.empty((3, n))
+        for i in range(3):
+            for j in range(n):
+                rows[i, j] = J[i, 0] * Ps[0, j] + J[i, 1] * Ps[1, j] + J[i, 2] * Ps[2, j]
+        for i in range(3):
+            for j in range(n):
+                Ps[i, j] = rows[i, j]
+        cols = np.empty((n, 3))
+        for i in range(n):
+            for j in range(3):
+                cols[i, j] = Ps[i, 0] * J[j, 0] + Ps[i, 1] * J[j, 1] + Ps[i, 2] * J[j, 2]
+        for i in range(n):
+            for j in range(3):
+                Ps[i, j] = cols[i, j]
+        for i in range(3):
+            for j in range(3):
+                Ps[i, j] += yaw_var * (u[i] * u[j])
+    fine = True
+    for i in range(n):
+        if not math.isfinite(xs[i]) or not Ps[i, i] > 0.0:
+            fine = False
+        for j in range(n):
+            if not math.isfinite(Ps[i, j]):
+                fine = False
+    return xs, Ps, R, fine
+
+
+# ------------------------------------------------------------------------------------------------
+# the step (Python: what has state and events)
+def applies(cal: OnlineCalibrator, held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> bool:
+    """Whether a block's motion step can take :func:`motion_step_fast`: numba backend, no model extensions,
+    no gyro hold offset in the propagation (:func:`.step.offsets` of the gyro while the rest detector says
+    still), and at least one measurement (the accel unclipped or the mag used)."""
+    lay = cal.lay
+    return (enabled() and not lay.ext_slice and not ("gyro" in lay.hold_slice and cal._rest_det.still)
+            and not (clip["accel"] and not use_mag))
+
+
+def _hold_col(cal: OnlineCalibrator, sensor: str, held: dict[str, bool]) -> int:
+    """First state column of ``sensor``'s hold offset where its reading is held in this block, else −1."""
+    sl = cal.lay.hold_slice.get(sensor) if held[sensor] else None
+    return -1 if sl is None else int(sl.start)
+
+
+def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float],
+                     held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
+    """:func:`.step.motion_step` for a block where :func:`applies`: the same steps, in the same order, with
+    the arithmetic in :func:`predict_kernel` and :func:`update_fold_kernel`."""
+    from .step import commit_folded, gated_bookkeeping, vehicle_accel_from_dev  # (step imports this module)
+
+    c = cal.config
+    tl = float(t[-1])
+    i, j = int(B.lo[b]), int(B.hi[b])
+    L = j - i
+    has_mag = bool(use_mag)
+    c_mag = _EMPTY1
+    if has_mag:
+        k0, n_m0 = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
+        c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
+    dt_blk = float(t[-1] - cal._t_last)
+    s_g = n["gyro"]
+    q = cal._process_noise(dt_blk, s_g)
+    jerk = 0.0
+    if L >= 2:
+        noise = float(B.jerk_n[b]) * 6.0 * (s_g * dt_blk / L / 4) ** 2
+        jerk = max(0.0, float(B.jerk[b]) - noise) / 3.0
+    lay = cal.lay
+    nst = lay.n
+    lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
+    order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
+    sig_mean = n["accel"] / math.sqrt(t.size)
+    a_mean = B.a_mean[b]
+    ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
+        cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+        lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+        _G0, _A0, _M0, DIP)
+    if not ok:
+        cal._diverged("covariance is not positive definite", tl)
+        return
+    cal.R_nom = R_end0
+    rate = math.sqrt(float(np.dot(om, om)))  # (np.linalg.norm's arithmetic, without its checks)
+    var_v = vehicle_accel_from_dev(cal, dev, dt_blk, tl)
+    cal._coverage.add_motion(om, dt_blk, cal._vehicle.active)
+    if use_mag:
+        cal._coverage.add_field(calibrated(cal, "mag", B.m_mean[b]))
+    use_acc = not clip["accel"]
+    var_a = 0.0
+    if use_acc:
+        mod = cal._models.acc
+        g = mod.gravity
+        var_a = sig_mean**2 + (mod.dev_gain * dev) ** 2 + 2.0 * g * dev
+        if rate:
+            var_a = var_a + (mod.lever_m * rate**2) ** 2
+        var_a += var_v
+    n_m = int(B.mhi[b] - B.mlo[b])
+    var_mag = n["mag"] ** 2 / max(n_m, 1)
+    yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
+    k_div = cal._div.count
+    k_v = var_v / c.vehicle_accel_sigma**2 if var_v > 0 else 0.0
+    gates = np.array([cal._gates["accel"], cal._gates["mag"]])
+    x, P, nis, status, solved, R_new, fine = update_fold_kernel(
+        X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
+        _hold_col(cal, "accel", held), _hold_col(cal, "mag", held), c.gravity, cal._Wm, cal._Wc, gates,
+        lay.consider, float(c.update_damping), cal.R_nom, yaw)
+    if not solved:
+        raise np.linalg.LinAlgError("Singular matrix")
+    res = UpdateResult(x, P)
+    names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
+    for k, s in enumerate(names):
+        if status[k] >= 0:
+            res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
+    gated_bookkeeping(cal, res, tl, True, k_v)
+    if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands
+        commit_folded(cal, R_new, x, P, fine, tl)
+
+
+# ------------------------------------------------------------------------------------------------
+# the rest step's update (:func:`.step.rest_step` after the running means are formed)
+@_njit
+def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.intp], R_nom: Array, Wm: Array,
+                       Wc: Array, has_acc: bool, a_mean: Array, sig_a: float, has_mag: bool, m_mean: Array,
+                       var_mag: float, w_mean: Array, var_rest: float, hold_acc: int, hold_mag: int, hold_gyr: int,
+                       gravity: float, dev_gain: float, gates: Array, consider: NDArray[np.bool_], yaw_var: float,
+                       g0: int, a0: int, m0: int, dip_col: int
+                       ) -> tuple[bool, Array, Array, Array, NDArray[np.int64], Array, Array, bool, Array, bool]:
+    """The rest's measurement on the state the rest began with (:func:`.step.rest_step`), one call.
+
+    Sigma points of (x0 (n,), P0 (n, n)) (scale = λ + n, Cholesky order ``order``), their attitudes
+    R_nom exp([δθ]_x), the measurements of :func:`.measurements.rest_measurements` — the rest's mean accel
+    a_mean (3,) against g Rᵀe_z with the quasi-static R (noise σ sig_a), where has_acc; its mean mag m_mean
+    against Rᵀh_world(dip) with R = var_mag, where has_mag; the mean raw rate w_mean against the gyro bias
+    with R = var_rest (not gated); each plus its hold offset (column ≥ 0) — the static update with the
+    posterior's predicted measurements (:func:`.kernels_update.update_kernel`, want_post), and the fold
+    (:func:`fold_kernel`). g0, a0, m0 the sensors' first columns, dip_col the dip's.
+
+    Returns (ok: P0 positive definite, x (n,), P (n, n) folded, NIS, status, post_z, post_P as update_kernel,
+    whether the solve succeeded, R (3, 3), whether x and P are finite with a positive diagonal).
+    """
+    X, ok = sigma_points_kernel(x0, P0, scale, order)
+    S, n = X.shape
+    nb = int(has_acc) + int(has_mag) + 1
+    if not ok:
+        return (False, x0.copy(), P0.copy(), np.zeros(nb), np.full(nb, -1, np.int64), np.zeros((nb, 3)),
+                np.zeros((nb, 3, 3)), True, R_nom.copy(), False)
+    p = np.empty((2 * S, 12))
+    for s in range(S):
+        for k in range(12):
+            p[s, k] = X[s, a0 + k]
+            p[S + s, k] = X[s, m0 + k]
+    o, M, Mi = model_pair_kernel(p)
+    Rs = np.empty((S, 3, 3))
+    Rd = np.empty((3, 3))
+    for s in range(S):
+        _rodrigues_into(X[s, 0], X[s, 1], X[s, 2], Rd)
+        for i in range(3):
+            for j in range(3):
+                Rs[s, i, j] = R_nom[i, 0] * Rd[0, j] + R_nom[i, 1] * Rd[1, j] + R_nom[i, 2] * Rd[2, j]
+    z = np.empty(3 * nb)
+    Z = np.empty((S, 3 * nb))
+    r = np.empty(3 * nb)
+    gated = np.ones(nb, np.bool_)
+    droppable = np.zeros(nb, np.bool_)
+    gk = np.empty(nb)
+    k = 0
+    if has_acc:
+        f_all = np.empty((S, 3))
+        for s in range(S):
+            for i in range(3):
+                f_all[s, i] = (M[s, i, 0] * (a_mean[0] - o[s, 0]) + M[s, i, 1] * (a_mean[1] - o[s, 1])
+                               + M[s, i, 2] * (a_mean[2] - o[s, 2]))
+        dev = _deviation(f_all, Wm, Wc, sig_a, gravity)
+        var_a = sig_a**2 + (dev_gain * dev) ** 2 + 2.0 * gravity * dev
+        for s in range(S):
+            for i in range(3):
+                Z[s, i] = (Mi[s, i, 0] * (gravity * Rs[s, 2, 0]) + Mi[s, i, 1] * (gravity * Rs[s, 2, 1])
+                           + Mi[s, i, 2] * (gravity * Rs[s, 2, 2])) + o[s, i]
+                if hold_acc >= 0:
+                    Z[s, i] = Z[s, i] + X[s, hold_acc + i]
+        for i in range(3):
+            z[i] = a_mean[i]
+            r[i] = var_a
+        gk[0] = gates[0]
+        k = 1
+    if has_mag:
+        c = 3 * k
+        for s in range(S):
+            cd, sd = math.cos(X[s, dip_col]), math.sin(X[s, dip_col])
+            t = S + s
+            h0 = cd * Rs[s, 1, 0] - sd * Rs[s, 2, 0]
+            h1 = cd * Rs[s, 1, 1] - sd * Rs[s, 2, 1]
+            h2 = cd * Rs[s, 1, 2] - sd * Rs[s, 2, 2]
+            for i in range(3):
+                Z[s, c + i] = (Mi[t, i, 0] * h0 + Mi[t, i, 1] * h1 + Mi[t, i, 2] * h2) + o[t, i]
+                if hold_mag >= 0:
+                    Z[s, c + i] = Z[s, c + i] + X[s, hold_mag + i]
+        for i in range(3):
+            z[c + i] = m_mean[i]
+            r[c + i] = var_mag
+        gk[k] = gates[1]
+        k += 1
+    c = 3 * k
+    for s in range(S):
+        for i in range(3):
+            Z[s, c + i] = X[s, g0 + i]
+            if hold_gyr >= 0:
+                Z[s, c + i] = Z[s, c + i] + X[s, hold_gyr + i]
+    for i in range(3):
+        z[c + i] = w_mean[i]
+        r[c + i] = var_rest
+    gated[k] = False
+    gk[k] = np.inf
+    Y = np.empty((S, n))
+    for s in range(S):
+        for j in range(n):
+            Y[s, j] = X[s, j] - x0[j]
+    x, P, nis, status, post_z, post_P, solved = update_kernel(Y, x0, P0, z, Z, r, Wm, Wc, gated, droppable, gk,
+                                                              consider, 0.0, True)
+    xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)
+    return (True, xs, Ps, nis, status, post_z, post_P, solved, R, fine)
+
+
+def rest_applies(cal: OnlineCalibrator) -> bool:
+    """Whether a rest block's update can take :func:`rest_update_fast`: numba backend, no model extension
+    (temperature and g-sensitivity terms stay on the general path)."""
+    return enabled() and not cal.lay.ext_slice
+
+
+def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0: Array, held: dict[str, bool],
+                     first: bool, k_div: int, tl: float) -> None:
+    """The end of :func:`.step.rest_step` (sigma points, rest measurements, the gated update, its NIS
+    bookkeeping, the fold and commit) with the arithmetic in :func:`rest_update_kernel`; ``k_div`` the
+    divergence count before the block, ``first`` whether the rest began with this block (its NIS recorded)."""
+    from .step import commit_folded, gated_bookkeeping  # (step imports this module)
+
+    c = cal.config
+    lay = cal.lay
+    nst = lay.n
+    lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
+    order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
+    has_acc, has_mag = bool(acc.na), bool(acc.nm)
+    a_mean = acc.sa / acc.na if has_acc else np.zeros(3)
+    m_mean = acc.sm / acc.nm if has_mag else np.zeros(3)
+    s_gyr = float(np.mean(cal.x[SENSOR_SLICE["gyro"].start + 3 : SENSOR_SLICE["gyro"].start + 6]))
+    var_rest = cal._models.zr.variance(acc.nw, s_gyr)
+    gyr = cal.lay.hold_slice.get("gyro")
+    yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
+    mod = cal._models.acc
+    ok, x, P, nis, status, post_z, post_P, solved, R_new, fine = rest_update_kernel(
+        x0, P0, lam + nst, order, cal.R_nom, cal._Wm, cal._Wc, has_acc, a_mean,
+        1.0 / math.sqrt(acc.na) if has_acc else 1.0, has_mag, m_mean, 1.0 / acc.nm if has_mag else 1.0,
+        acc.sw / acc.nw, var_rest, _hold_col(cal, "accel", held), _hold_col(cal, "mag", held),
+        -1 if gyr is None else int(gyr.start), mod.gravity, mod.dev_gain,
+        np.array([cal._gates["accel"], cal._gates["mag"]]), lay.consider, yaw, _G0, _A0, _M0, DIP)
+    if not ok:
+        cal._rest_acc = None
+        cal._diverged("covariance is not positive definite", tl)
+        return
+    if not solved:
+        raise np.linalg.LinAlgError("Singular matrix")
+    res = UpdateResult(x, P)
+    names = (["accel"] if has_acc else []) + (["mag"] if has_mag else []) + ["rest"]
+    for k, s in enumerate(names):
+        if status[k] < 0:
+            continue
+        res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
+        if status[k] != 2:
+            res.post[s] = (post_z[k], post_P[k])
+    gated_bookkeeping(cal, res, tl, first, 0.0)
+    acc.post = res.post
+    if cal._div.count == k_div:  # a divergence in the update also ended the running rest
+        commit_folded(cal, R_new, x, P, fine, tl)

@@ -1,0 +1,152 @@
+"""The fast path (onlinecal.ukf.fastpath: a motion block in two compiled calls, a rest block's update in one)
+against the numpy reference path and against the compiled path without it: whole replays — a cold-started flight
+(rests, the magnetometer's cold start), a paper session with a magnetic disturbance, and a forced
+divergence — end with the same state x, covariance P and events.
+
+Tolerances as tests/test_speed_replay.py (whose docstring gives the reason for σ's): an estimate within
+1e-9 × max(|x|, σ), a σ within 1e-8 relative and so a covariance entry within 1e-8 × σ_i σ_j (a posterior
+covariance is a difference of larger terms: the rounding of either path is 1e-9–1e-8 of it); events
+identical. Against the compiled path without the fast path (the same kernels, in the same order) the
+tolerances are 100 times tighter."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from onlinecal.sim import simulate
+from onlinecal.sim.effects import MagDisturbance
+from onlinecal.ukf import OnlineCalibrator, fastpath, kernels
+from onlinecal.ukf import divergence as dv
+from onlinecal.ukf.attitude_init import fold_attitude
+from onlinecal.ukf.layout import ATT
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed: only the numpy path exists")
+
+
+def _run(data, backend: str, fast: bool, init=None, force_div_at: float | None = None):
+    """Replay ``data`` on ``backend`` with the fast path on or off; returns the calibrator and how many
+    motion blocks and rest blocks took the fast path. ``force_div_at``: from that log time on, the first NIS
+    record declares a divergence, as tests/test_robust_divergence.py does."""
+    calls = {"motion": 0, "rest": 0}
+    real = {"motion": fastpath.motion_step_fast, "rest": fastpath.rest_update_fast}
+
+    def counter(kind: str):
+        def counted(*a, **k):
+            calls[kind] += 1
+            return real[kind](*a, **k)
+        return counted
+
+    old = fastpath.set_enabled(fast)
+    fastpath.motion_step_fast = counter("motion")
+    fastpath.rest_update_fast = counter("rest")
+    try:
+        with kernels.use_backend(backend):
+            cal = OnlineCalibrator(init)
+            if force_div_at is None:
+                cal.feed(data)
+            else:
+                n0 = int(np.searchsorted(data.t_imu, force_div_at))
+                cal.feed(data.slice_imu(0, n0))
+                rec = cal._nis.record
+                fired = {"done": False}
+
+                def forced(s, nis, t, inflated=0.0):
+                    if not fired["done"]:
+                        fired["done"] = True
+                        return f"{s} NIS window mean forced"
+                    return rec(s, nis, t, inflated)
+
+                cal._nis.record = forced  # type: ignore[method-assign]
+                with pytest.warns(dv.DivergenceWarning):
+                    cal.feed(data.slice_imu(n0, data.n_imu))
+            cal.flush()
+    finally:
+        fastpath.set_enabled(old)
+        fastpath.motion_step_fast = real["motion"]  # type: ignore[assignment]
+        fastpath.rest_update_fast = real["rest"]  # type: ignore[assignment]
+    return cal, calls
+
+
+def _assert_same(a: OnlineCalibrator, b: OnlineCalibrator, rtol: float = 1e-9, rtol_P: float = 1e-8) -> None:
+    """x within rtol × max(|x|, σ); P within rtol_P × σ_i σ_j and σ within rtol_P × σ; the same
+    attitude, events and NIS counts."""
+    assert a.n == b.n and a._n_blocks == b._n_blocks
+    sa, sb = a.sigma(), b.sigma()
+    assert np.all(np.abs(a.x - b.x) <= rtol * np.maximum(np.abs(b.x), sb)), np.max(np.abs(a.x - b.x) / sb)
+    assert np.all(np.abs(a.P - b.P) <= rtol_P * np.outer(sb, sb)), np.max(np.abs(a.P - b.P) / np.outer(sb, sb))
+    assert np.all(np.abs(sa - sb) <= rtol_P * sb)
+    assert np.allclose(a.R_nom, b.R_nom, rtol=0, atol=1e-9)
+    assert [(e["kind"], e["t"]) for e in a.events] == [(e["kind"], e["t"]) for e in b.events]
+    for s in ("accel", "mag"):
+        ma, mb = a.nis_summary()[s], b.nis_summary()[s]
+        assert ma.get("updates") == mb.get("updates") and ma.get("rejected") == mb.get("rejected"), s
+
+
+@pytest.mark.parametrize("profile, seconds, event", [("flight", 60.0, "vehicle"), ("paper", 110.0, "mag_cold_start")])
+def test_cold_start_fast_path_equals_the_numpy_reference(profile: str, seconds: float, event: str) -> None:
+    """Cold start: 60 s of a simulated 200 Hz flight (motion, rests, the vehicle detector fed by the fast
+    path's deviation) and 110 s of the paper session (static positions, turns, the magnetometer's cold start
+    and then its updates, with the hold offsets of its coarse lattice, on the fast path)."""
+    d = (simulate("flight", 3, duration=seconds, imu_rate=200) if profile == "flight"
+         else simulate("paper", 1, duration=seconds)).data
+    fast, n_fast = _run(d, "numba", True)
+    ref, n_ref = _run(d, "numpy", False)
+    slow, n_slow = _run(d, "numba", False)
+    assert sum(n_ref.values()) == 0 and sum(n_slow.values()) == 0
+    assert n_fast["motion"] > 100 and n_fast["rest"] > 50  # motion and rests both on the fast path
+    assert any(e["kind"] == event for e in ref.events), ref.events
+    _assert_same(fast, ref)
+    _assert_same(fast, slow)
+
+
+def test_paper_session_with_a_magnetic_disturbance_fast_path_equals_the_numpy_reference() -> None:
+    """The paper's motion with a 0.5 G disturbance for 6 s, from the true calibration (the magnetometer in
+    use from the start, so that the disturbance gate arms and then leaves the stretch out)."""
+    eff = MagDisturbance(start=55.0, duration=6.0, amplitude=0.5, direction=(1.0, 0.5, 0.0))
+    sim = simulate("paper", 1, duration=80.0, effects=[eff])
+    fast, n_fast = _run(sim.data, "numba", True, init=sim.truth.calibration)
+    ref, _ = _run(sim.data, "numpy", False, init=sim.truth.calibration)
+    assert n_fast["motion"] > 100 and n_fast["rest"] > 50
+    kinds = [e["kind"] for e in ref.events]
+    assert "mag_disturbance" in kinds, kinds
+    _assert_same(fast, ref)
+
+
+def test_a_forced_divergence_restarts_both_paths_alike() -> None:
+    """A divergence declared by the NIS bookkeeping in the middle of a flight: the state restarts and the
+    filter carries on; the fast path and the reference end alike."""
+    d = simulate("flight", 5, duration=50, imu_rate=200).data
+    fast, n_fast = _run(d, "numba", True, force_div_at=30.0)
+    ref, _ = _run(d, "numpy", False, force_div_at=30.0)
+    assert n_fast["motion"] > 100
+    assert sum(e["kind"] == "divergence" for e in ref.events) >= 1
+    _assert_same(fast, ref)
+
+
+@pytest.mark.parametrize("yaw_free", [False, True])
+def test_the_compiled_fold_equals_fold_attitude(yaw_free: bool) -> None:
+    """fold_kernel (symmetrise, R_nom exp([δθ]ₓ), δθ = 0, the heading's variance reset) against
+    :func:`onlinecal.ukf.attitude_init.fold_attitude` on a random posterior; a NaN is reported."""
+    rng = np.random.default_rng(7 + yaw_free)
+    n = 40
+    A = rng.normal(size=(n, n))
+    P = A @ A.T * 1e-3 + np.eye(n) * 1e-4
+    P[0, 1] += 1e-5  # not symmetric: the fold symmetrises
+    x = rng.normal(0, 0.01, n)
+    x[ATT] = [0.02, -0.01, 0.03]
+    R_nom = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    R_nom *= np.sign(np.linalg.det(R_nom))
+    xs, Ps, R, fine = fastpath.fold_kernel(x, P, R_nom, 0.5 if yaw_free else -1.0)
+    R_ref, x_ref, P_ref = fold_attitude(R_nom, x.copy(), P.copy(), 0.5 if yaw_free else None, ATT)
+    assert fine
+    assert np.allclose(R, R_ref, rtol=0, atol=1e-14)
+    assert np.array_equal(xs, x_ref) and np.all(xs[ATT] == 0.0)
+    assert np.allclose(Ps, P_ref, rtol=0, atol=1e-15) and np.allclose(Ps, Ps.T, rtol=0, atol=1e-15)
+    if yaw_free:  # the heading (about world z, body direction R[2]) has exactly the variance given
+        u = R[2]
+        assert math.isclose(float(u @ Ps[:3, :3] @ u), 0.5, rel_tol=1e-12)
+    P[5, 5] = np.nan
+    assert not fastpath.fold_kernel(x, P, R_nom, -1.0)[3]

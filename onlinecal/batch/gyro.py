@@ -21,7 +21,7 @@ from scipy.optimize import least_squares
 
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
-from ..specs import rail_samples
+from ..specs import RAIL_TOL, rail_samples
 from .decomp import decompose_many
 from .ellipsoid import FitError
 from .segment import Interval, Phase, Segmentation, moving_std
@@ -704,7 +704,7 @@ def gyro_rails(segs: list[Segmentation]) -> Array:
 def clipped_stretches(data: ImuData, rails: Array) -> tuple[NDArray[np.bool_], list[ClippedStretch]]:
     """Samples of ``data`` with a gyro axis at its rail (``rails`` (3,), from :func:`gyro_rails`):
     (mask (N,), runs of consecutive clipped samples)."""
-    lim = np.where(np.isfinite(rails), rails * (1 - 1e-3), np.inf)
+    lim = np.where(np.isfinite(rails), rails * (1 - RAIL_TOL), np.inf)
     at = np.abs(data.gyro) >= lim
     m: NDArray[np.bool_] = np.asarray(at.any(axis=1), dtype=bool)
     edge = np.diff(np.concatenate([[0], m.astype(np.int8), [0]]))

@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..advice import faces_advice, faces_at_rest, missing_faces
+from .layout import ATT
 
 Array = NDArray[np.float64]
 AXES = ("x", "y", "z")
@@ -102,6 +103,37 @@ def vehicle_accel_var(sigma: float, tau: float, dt_block: float) -> float:
     acceleration of σ ``sigma`` correlated over ``tau`` s: σ² · max(1, τ/Δt) (one independent measurement
     per correlation time, spread over the blocks it covers)."""
     return float(sigma**2 * max(1.0, tau / max(dt_block, 1e-6)))
+
+
+def earth_rate_noise(q: Array, P: Array, R_nom: Array, bias: slice, s_gyr: float, sigma: float, tau: float,
+                     dt: float) -> Array:
+    """What the Earth's rotation, which the gyro model lacks, leaves unknown in flight: added in place to
+    the block's Q diagonal ``q`` (n,). ``P`` (n, n) the covariance Q adds to, ``R_nom`` (3, 3) world ← body,
+    ``bias`` the gyro bias's slice, ``s_gyr`` the gyro's mean scale (the bias is in raw units), ``sigma``
+    rad/s the per-axis allowance for the Earth rate (:attr:`UKFConfig.rest_rate_sigma`, the zero-rate
+    update's), ``tau`` s the time over which a vehicle's attitude is re-referenced
+    (:attr:`UKFConfig.vehicle_accel_tau`: one independent accelerometer measurement per τ_v), ``dt`` s.
+
+    A gyro senses Ω_E = 7.29e-5 rad/s (the Earth's sidereal rate) projected on its axes; in a local
+    level frame at latitude φ that is Ω_E sin φ up and Ω_E cos φ north. Two parts, two terms:
+
+    * **the vertical part lies on the body's up axis** (u = R_nomᵀ e_z) for a level vehicle, the whole
+      flight: no data tell it from the gyro bias along u. With the magnetometer holding the heading the
+      drift it corrects made the bias σ fall to ~3e-6 rad/s while its error was Ω_E sin 47.4° = 5.4e-5
+      (bench-started flights: gyro.bias.z 19–20σ off; 3.4–4.2σ with the second term alone). So the bias
+      variance along u is kept at or above σ² — per axis, σ² u_i² (Q is diagonal), topped up only where
+      the data took it lower;
+    * **the horizontal part turns with the heading in the body frame**, so no constant bias absorbs it: it
+      tilts the attitude by up to Ω_E cos φ (4.9e-5 rad/s at 47.4°) about north until the accelerometer
+      or the magnetometer corrects it. As a coloured rate error of σ per axis correlated over τ its white
+      equivalent adds σ²·τ·dt to the attitude variance. Without it, bench-started flights ended their
+      final ground rest with the accel NIS climbing 4 → 44 (the landing tilt outside its σ; 82 of 555
+      rest updates soft-gated, health degraded)."""
+    u = np.asarray(R_nom, float)[2, :]  # R_nomᵀ e_z: world up in the body frame
+    floor = (sigma / s_gyr * u) ** 2
+    q[bias] += np.maximum(0.0, floor - np.diag(P)[bias])
+    q[ATT] += sigma**2 * tau * dt
+    return q
 
 
 @dataclass

@@ -266,7 +266,13 @@ def main() -> None:
     ap.add_argument("--latitude", type=float, default=DEFAULT_LATITUDE_DEG,
                     help=f"deg, where the flights' gyro senses the Earth's rotation (default {DEFAULT_LATITUDE_DEG})")
     ap.add_argument("--no-earth-rate", action="store_true", help="diagnostic: flights without the Earth's rotation")
+    ap.add_argument("--summary-of", default=None, metavar="JSON",
+                    help="print the summary of a --save file (a run stopped early: the seeds it completed)")
     args = ap.parse_args()
+    if args.summary_of:
+        for line in summary(_load(args.summary_of)):
+            print(line)
+        return
     config = UKFConfig(rest_rate_sigma=args.rest_rate_sigma) if args.rest_rate_sigma is not None else None
     print("# flights' gyro: " + ("no Earth rate (diagnostic)" if args.no_earth_rate else
           f"Earth rate at latitude {args.latitude:g}°") + "; bench sessions: paper profile, no Earth rate", flush=True)
@@ -299,6 +305,18 @@ def _save(path: str, runs: list[FlightRun]) -> None:
                     "gyro_bias_err_60s": r.gyro_bias_err_60s, "events": r.events, "realtime": r.realtime,
                     "verdict": r.verdict, "reasons": list(r.reasons), "nis_out": r.nis_out,
                     "accel_nis": r.accel_nis, "accel_vehicle_nis": r.accel_vehicle_nis} for r in runs], fh)
+
+
+def _load(path: str) -> list[FlightRun]:
+    """The runs of a ``--save`` file, for :func:`summary` (errors and observability are not saved)."""
+    import json
+
+    with open(path) as fh:
+        rows = json.load(fh)
+    return [FlightRun(d["profile"], d["start"], d["seed"], np.array(d["z"]), np.full(36, np.nan), np.array(d["held"]),
+                      np.array(d["determined"]), d["gyro_bias_err_60s"], d["events"].get("divergence", 0), d["events"],
+                      d["realtime"], {}, d["verdict"], tuple(d["reasons"]), d["nis_out"], d["accel_nis"],
+                      d["accel_vehicle_nis"]) for d in rows]
 
 
 if __name__ == "__main__":

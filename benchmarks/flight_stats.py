@@ -231,8 +231,9 @@ def summary(runs: list[FlightRun]) -> list[str]:
                 parts.append(f"{g} {ng[:, 0].sum():.1f}/{k_g} [{lo_g:.1f}, {hi_g:.1f}]")
         out.append("    NEES of the determined terms per group (sum/dof [99 % band]): " + "; ".join(parts))
         zb = np.array([[r.z[i] if r.determined[i] and not r.held[i] else np.nan for i in range(3)] for r in rs])
+        zm = [float(np.mean(c[np.isfinite(c)])) if np.isfinite(c).any() else float("nan") for c in zb.T]
         out.append("    gyro bias z (determined), per axis: mean " + ", ".join(
-            f"{a} {np.nanmean(zb[:, i]):+.2f}" for i, a in enumerate("xyz")) + "; z² sum " + ", ".join(
+            f"{a} {zm[i]:+.2f}" for i, a in enumerate("xyz")) + "; z² sum " + ", ".join(
             f"{a} {np.nansum(zb[:, i] ** 2):.1f}/{int(np.sum(np.isfinite(zb[:, i])))}" for i, a in enumerate("xyz"))
             + " (the Earth rate's vertical part, Ω_E sin φ on a level body's z, is one offset on every seed)")
         ver = [r.verdict for r in rs]

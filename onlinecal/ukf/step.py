@@ -134,7 +134,7 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
     dt_blk = float(t[-1] - cal._t_last)
     q = block_process_noise(cal._process_noise(dt_blk, n["gyro"]), B, b, dt_blk, n["gyro"], cal.P)
     if cal._vehicle.active:  # the Earth's rotation, which the gyro model lacks (.vehicle.earth_rate_noise)
-        earth_rate_noise(q, cal.P, cal.R_nom, index("gyro", "bias"), float(np.mean(cal.x[index("gyro", "scale")])),
+        earth_rate_noise(q, cal.P, index("gyro", "bias"), float(np.mean(cal.x[index("gyro", "scale")])),
                          cal.config.rest_rate_sigma, cal.config.vehicle_accel_tau, dt_blk)
     x_pred, Y, P_pred = predict_moments(X, cal._Wm, cal._Wc, q)
     cal.R_nom = pred.R_end[0]

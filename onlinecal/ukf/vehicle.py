@@ -111,10 +111,9 @@ def vehicle_accel_var(sigma: float, tau: float, dt_block: float) -> float:
 OMEGA_E_HORIZONTAL_RMS = 7.292115e-5 * (2.0 / 3.0) ** 0.5
 
 
-def earth_rate_noise(q: Array, P: Array, R_nom: Array, bias: slice, s_gyr: float, sigma: float, tau: float,
-                     dt: float) -> Array:
+def earth_rate_noise(q: Array, P: Array, bias: slice, s_gyr: float, sigma: float, tau: float, dt: float) -> Array:
     """What the Earth's rotation, which the gyro model lacks, leaves unknown in flight: added in place to
-    the block's Q diagonal ``q`` (n,). ``P`` (n, n) the covariance Q adds to, ``R_nom`` (3, 3) world ← body,
+    the block's Q diagonal ``q`` (n,). ``P`` (n, n) the covariance Q adds to,
     ``bias`` the gyro bias's slice, ``s_gyr`` the gyro's mean scale (the bias is in raw units), ``sigma``
     rad/s the per-axis allowance for the Earth rate on the bias (:attr:`UKFConfig.rest_rate_sigma`, the
     zero-rate update's), ``tau`` s the correlation time of the attitude disturbance
@@ -123,12 +122,14 @@ def earth_rate_noise(q: Array, P: Array, R_nom: Array, bias: slice, s_gyr: float
     A gyro senses Ω_E = 7.29e-5 rad/s (the Earth's sidereal rate) projected on its axes; in a local
     level frame at latitude φ that is Ω_E sin φ up and Ω_E cos φ north. Two parts, two terms:
 
-    * **the vertical part lies on the body's up axis** (u = R_nomᵀ e_z) for a level vehicle, the whole
-      flight: no data tell it from the gyro bias along u. With the magnetometer holding the heading the
-      drift it corrects made the bias σ fall to ~3e-6 rad/s while its error was Ω_E sin 47.4° = 5.4e-5
-      (bench-started flights: gyro.bias.z 19–20σ off; 3.4–4.2σ with the second term alone). So the bias
-      variance along u is kept at or above σ² — per axis, σ² u_i² (Q is diagonal), topped up only where
-      the data took it lower;
+    * **the gyro bias cannot be told from the Earth rate's projection**: the vertical part Ω_E sin φ lies on a
+      level vehicle's z axis for the whole flight, the horizontal part on x/y for as long as a heading is
+      held. With the magnetometer holding the heading the drift it corrects made the bias σ fall to ~3e-6
+      rad/s while its error was Ω_E sin 47.4° = 5.4e-5 (bench-started flights: gyro.bias.z 19–20σ off);
+      floored along the up axis only, the x/y bias σ of a cold flight still fell below the horizontal
+      part its rest had left in the estimate (multirotor seed 17: gyro.bias.y 3.47σ; 1.34σ with the floor
+      on every axis). So the bias variance on every axis is kept at or above σ² (the zero-rate update's
+      allowance), topped up only where the data took it lower;
     * **the horizontal part turns with the heading in the body frame**, so no constant bias absorbs it: it
       tilts the attitude at Ω_E cos φ (4.9e-5 rad/s at 47.4°) about north until the accelerometer or the
       magnetometer corrects it. As a coloured rate error of that size (:data:`OMEGA_E_HORIZONTAL_RMS`,
@@ -137,9 +138,7 @@ def earth_rate_noise(q: Array, P: Array, R_nom: Array, bias: slice, s_gyr: float
       with the accel NIS climbing 4 → 44 (the landing tilt outside its σ; 82 of 555 rest updates
       soft-gated, health degraded); with σ = Ω_E/√3 instead of Ω_h, one fixed-wing flight of two still
       was (63 of 528)."""
-    u = np.asarray(R_nom, float)[2, :]  # R_nomᵀ e_z: world up in the body frame
-    floor = (sigma / s_gyr * u) ** 2
-    q[bias] += np.maximum(0.0, floor - np.diag(P)[bias])
+    q[bias] += np.maximum(0.0, (sigma / s_gyr) ** 2 - np.diag(P)[bias])
     q[ATT] += OMEGA_E_HORIZONTAL_RMS**2 * tau * dt
     return q
 

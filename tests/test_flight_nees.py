@@ -111,3 +111,27 @@ def test_cold_nees_of_determined_terms_inside_99_band(profile):
     assert dof >= 6  # at least the gyro bias on both seeds
     lo, hi = chi2.ppf([0.005, 0.995], dof)
     assert lo <= nees <= hi, (nees, dof, lo, hi)
+
+
+def test_earth_rate_noise_tops_up_the_gyro_bias_and_the_attitude():
+    """On a vehicle, Q gains what the unmodelled Earth rate leaves unknown: the gyro bias's variance is
+    topped up to the allowance (Ω_E/√3 per axis, raw units) only where the data took it lower, and the
+    attitude takes the horizontal part's Ω_E²·(2/3)·τ per second (sizes from the physics constant)."""
+    from onlinecal.ukf.config import UKFConfig
+    from onlinecal.ukf.layout import ATT, index
+    from onlinecal.ukf.vehicle import earth_rate_noise
+
+    sigma = UKFConfig().rest_rate_sigma
+    assert sigma == pytest.approx(OMEGA_E / np.sqrt(3), rel=1e-12)
+    b = index("gyro", "bias")
+    n = b.stop + 30
+    P = np.eye(n) * 1e-2
+    s_gyr = 1.15
+    P[b, b] = np.diag([1e-12, (2 * sigma / s_gyr) ** 2, 1e-10])  # x, z tight; y already wider
+    q = earth_rate_noise(np.zeros(n), P, b, s_gyr, sigma, 30.0, 0.05)
+    floor = (sigma / s_gyr) ** 2
+    assert q[b][0] == pytest.approx(floor - 1e-12) and q[b][1] == 0.0 and q[b][2] == pytest.approx(floor - 1e-10)
+    assert np.allclose(q[ATT], OMEGA_E**2 * (2 / 3) * 30.0 * 0.05, rtol=1e-12)
+    mask = np.ones(n, bool)
+    mask[b], mask[ATT] = False, False
+    assert not q[mask].any()

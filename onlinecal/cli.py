@@ -183,7 +183,9 @@ def cmd_simulate(a: argparse.Namespace) -> int:
     try:
         effects = [parse_effect(e) for e in a.effect]
         check_combination(effects)
-        sim = simulate(a.profile, a.seed, a.duration, a.rate, a.mag_rate, effects=effects)
+        lat = {} if a.latitude is None else ({"earth_rate": False} if a.latitude == "none" else
+                                              {"earth_rate": True, "latitude": a.latitude})
+        sim = simulate(a.profile, a.seed, a.duration, a.rate, a.mag_rate, effects=effects, **lat)
     except EffectError as e:  # the message names the spec and what is wrong with it
         raise UsageError(f"--effect: {e}") from e
     except ProfileError as e:
@@ -738,6 +740,16 @@ def _positive_int(s: str) -> int:
     return int(_POS_INT(s))
 
 
+def _latitude(s: str) -> float | str:
+    """``simulate --latitude``: degrees within ±90, or ``none`` (no Earth rate)."""
+    if s.strip().lower() in ("none", "off"):
+        return "none"
+    v = float(_number("a latitude in degrees (−90…90) or none")(s))
+    if abs(v) > 90:
+        raise argparse.ArgumentTypeError(f"must be a latitude in degrees (−90…90) or none, not {s!r}")
+    return v
+
+
 def _add_scales(p: argparse.ArgumentParser) -> None:
     p.add_argument("--acc-scale", type=_scale_factor, default=None, metavar="K",
                    help="multiplier from the log's accelerometer unit to m/s^2 (default: per format)")
@@ -830,6 +842,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mag-rate", type=_POS, default=50.0, metavar="HZ", help="magnetometer rate, Hz (default 50)")
     p.add_argument("--effect", action="append", default=[], metavar="SPEC",
                    help="NAME[:key=value,...] (repeatable; names in the README's effect table)")
+    p.add_argument("--latitude", type=_latitude, default=None, metavar="DEG|none",
+                   help="the gyro senses the Earth's rotation at this latitude; none: not at all (default: the "
+                        "profile's — multirotor and fixedwing at 47.397742°, paper and flight none)")
     p.set_defaults(fn=cmd_simulate)
 
     p = command("batch", "the paper's offline pipeline over logs of one sensor unit")

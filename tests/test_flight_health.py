@@ -154,10 +154,9 @@ def test_flight_health_and_nees_reduced_seeds(profile, start):
     """10 min at 200 Hz, 2 seeds: health ok on every clean cold flight (bench-started: no reason but the
     open mag-coverage one); no term beyond 5σ; the NEES over the
     determined terms not above its 99 % band (never confidently wrong) and, bench-started, inside it.
-    Cold, the lower side is not asserted: the gyro bias σ is floored by the zero-rate update's Earth-rate
-    allowance (5e-5 rad/s; the simulator has no Earth rotation) and the multirotor's gyro scale z by the
-    vehicle-acceleration bound σ_v — both conservative by design, measured over 20 seeds in
-    docs/flight.md."""
+    Cold, the band's lower side is asserted in tests/test_flight_nees.py (the flights' gyro senses the
+    Earth's rotation, which the zero-rate allowance is for). Bench-started, the gyro bias is no longer
+    determined (its σ is held at the Earth-rate allowance, above the bench's), so fewer dof."""
     fs = _flight_stats()
     runs = [fs.run_flight(profile, seed, start) for seed in (23, 24)]
     assert all(np.abs(r.z[~r.held]).max() < 5 for r in runs)
@@ -172,7 +171,7 @@ def test_flight_health_and_nees_reduced_seeds(profile, start):
     lo, hi = chi2.ppf([0.005, 0.995], max(k, 1))
     assert nd[:, 0].sum() <= hi
     if start == "bench":
-        assert k >= 10 and lo <= nd[:, 0].sum()
+        assert k >= 6 and lo <= nd[:, 0].sum()
 
 
 @pytest.mark.slow

@@ -33,7 +33,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from .motion import G0, MotionSample
+from .motion import G0, MotionSample, with_earth_rate
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -196,7 +196,8 @@ def _integrate(kind: int, cmd: Array, R0: Array, g: float, dt: float, k_att: flo
 @dataclass
 class VehicleTrajectory:
     """A forward-integrated flight on the grid ``t`` (step ``dt``). ``evaluate`` holds ω over each step and
-    advances the attitude exactly, so truth at any instant is consistent (attitude ↔ rate ↔ force)."""
+    advances the attitude exactly, so truth at any instant is consistent (attitude ↔ rate ↔ force); with
+    ``earth_rate`` set, its ω is the inertial rate (+ Rᵀ Ω_E), the attitude stays Earth-fixed."""
 
     kind: str
     dt: float
@@ -209,6 +210,7 @@ class VehicleTrajectory:
     throttle: Array  # (N,) 0..1, drives vibration amplitude and mag interference
     segs: list[dict[str, Any]] = field(default_factory=list)
     g: float = G0
+    earth_rate: Array | None = None  # world (3,) rad/s added to the gyro truth (motion.earth_rate_world)
 
     @property
     def duration(self) -> float:
@@ -234,7 +236,7 @@ class VehicleTrajectory:
         a = np.einsum("nij,nj->ni", R, f) - np.array([0.0, 0.0, self.g])
         eul = np.stack([np.arctan2(R[:, 2, 1], R[:, 2, 2]), -np.arcsin(np.clip(R[:, 2, 0], -1, 1)),
                         np.arctan2(R[:, 1, 0], R[:, 0, 0])], axis=1)
-        return MotionSample(t, R, w.copy(), f.copy(), a, eul)
+        return with_earth_rate(MotionSample(t, R, w.copy(), f.copy(), a, eul), self.earth_rate)
 
     def at(self, name: str, t: Array) -> Array:
         """A grid quantity (``armed``, ``throttle``, ``v_world``) at times t (zero-order hold)."""

@@ -24,6 +24,15 @@ from ..specs import G0 as G0  # the constant is production data (onlinecal.specs
 
 Array = NDArray[np.float64]
 
+# The Earth's rotation rate relative to the stars, 7.292115e-5 rad/s (WGS-84 / IERS nominal mean angular
+# velocity; NIMA TR8350.2, 3rd ed., table 3.1). A gyro measures the body's rate in inertial space, so at
+# rest it reads this rate projected on its axes — up to 7.3e-5 rad/s, about 1/10 of a MEMS gyro's
+# per-sample noise at 200 Hz, but what a long rest averages down to.
+OMEGA_EARTH = 7.292115e-5  # rad/s
+# Default latitude of the flight profiles: PX4 SITL's default home (47.397742° N, 8.545594° E, Zürich;
+# PX4_HOME_LAT), consistent with the simulator's field (onlinecal.specs: 0.48 G, dip 64°, central Europe).
+DEFAULT_LATITUDE_DEG = 47.397742
+
 
 def smoothstep(u: Array) -> tuple[Array, Array, Array]:
     """Quintic 0→1 with zero rate and acceleration at both ends; returns s, ds/du, d²s/du²."""
@@ -77,7 +86,8 @@ class Segment:
 
 @dataclass
 class MotionSample:
-    """Truth at sample times: R (N,3,3) world←body, omega (N,3) rad/s body rate, f (N,3) m/s² specific
+    """Truth at sample times: R (N,3,3) world←body, omega (N,3) rad/s body rate (with the Earth's rate
+    where the trajectory's ``earth_rate`` is set: the inertial rate a gyro senses), f (N,3) m/s² specific
     force in body, a_world (N,3) m/s², euler (N,3)."""
 
     t: Array
@@ -88,6 +98,27 @@ class MotionSample:
     euler: Array
 
 
+def earth_rate_world(latitude_deg: float) -> Array:
+    """The Earth's rotation (3,) rad/s in the local world frame (ENU: x east, y north, z up) at geodetic
+    latitude ``latitude_deg``: Ω_E · (0, cos φ, sin φ) — along the Earth's axis, which points north and, in
+    the northern hemisphere, up. (In NED it would read Ω_E · (cos φ, 0, −sin φ).) The transport rate of a
+    vehicle moving over the curved Earth, v / R_E ≈ 20 / 6.4e6 = 3e-6 rad/s at 20 m/s, and the Coriolis
+    acceleration 2 Ω_E × v ≤ 3e-3 m/s² are below every sensor's noise floor here and left out."""
+    if not np.isfinite(latitude_deg) or abs(latitude_deg) > 90.0:
+        raise ValueError(f"latitude must be within ±90°, not {latitude_deg!r}")
+    phi = np.radians(latitude_deg)
+    return OMEGA_EARTH * np.array([0.0, np.cos(phi), np.sin(phi)])
+
+
+def with_earth_rate(m: MotionSample, w_E: Array | None) -> MotionSample:
+    """``m`` with the gyro's truth ω replaced by the inertial rate ω + Rᵀ Ω_E (world ``w_E`` (3,) rad/s;
+    None: unchanged). R is world ← body, so Rᵀ Ω_E is the Earth's rate on the body axes."""
+    if w_E is None:
+        return m
+    return MotionSample(m.t, m.R, m.omega + np.einsum("nji,j->ni", m.R, np.asarray(w_E, float)), m.f,
+                        m.a_world, m.euler)
+
+
 class Trajectory:
     """A sequence of segments starting at rest at ``start`` Euler angles (rad)."""
 
@@ -95,6 +126,7 @@ class Trajectory:
         self.segments: list[Segment] = []
         self.start = np.asarray(start, float)
         self.g = g
+        self.earth_rate: Array | None = None  # world (3,) rad/s added to the gyro truth (earth_rate_world)
 
     @property
     def current(self) -> Array:
@@ -211,7 +243,7 @@ class Trajectory:
         omega = euler_rates_to_body(ang, rate)
         f_world = acc + np.array([0.0, 0.0, self.g])
         f = np.einsum("nji,nj->ni", R, f_world)
-        return MotionSample(t, R, omega, f, acc, ang)
+        return with_earth_rate(MotionSample(t, R, omega, f, acc, ang), self.earth_rate)
 
     def annotations(self) -> list[dict]:
         """Segment list for the truth file: kind, t0, t1 and, for spins, the body axis."""

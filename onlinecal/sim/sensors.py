@@ -31,7 +31,15 @@ from .flight import (
     multirotor_trajectory,
     vibration,
 )
-from .motion import G0, MotionSample, Trajectory, flight_trajectory, paper_trajectory
+from .motion import (
+    DEFAULT_LATITUDE_DEG,
+    G0,
+    MotionSample,
+    Trajectory,
+    earth_rate_world,
+    flight_trajectory,
+    paper_trajectory,
+)
 
 Array = NDArray[np.float64]
 TRUTH_SCHEMA = "onlinecal.truth/1"
@@ -90,6 +98,7 @@ class Truth:
     segments: list[dict] = field(default_factory=list)
     effects: list[dict] = field(default_factory=list)
     vehicle: dict[str, Any] = field(default_factory=dict)  # flight profiles: vibration, interference, times
+    earth_rate: dict[str, Any] = field(default_factory=dict)  # {"latitude_deg", "world"} where the gyro sees it
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -105,6 +114,7 @@ class Truth:
             "segments": self.segments,
             "effects": self.effects,
             **({"vehicle": self.vehicle} if self.vehicle else {}),
+            **({"earth_rate": self.earth_rate} if self.earth_rate else {}),
             "calibration": self.calibration.to_dict(),
         }
 
@@ -113,7 +123,7 @@ class Truth:
         if d.get("schema") != TRUTH_SCHEMA:
             raise ValueError(f"not a truth file (schema {d.get('schema')!r})")
         kw = {k: d[k] for k in ("profile", "seed", "imu_rate", "mag_rate", "gravity", "field_world",
-                                 "field_gauss", "noise", "segments", "effects", "vehicle") if k in d}
+                                 "field_gauss", "noise", "segments", "effects", "vehicle", "earth_rate") if k in d}
         return cls(calibration=Calibration.from_dict(d["calibration"]), **kw)
 
     def save(self, path: str | Path) -> None:
@@ -278,6 +288,8 @@ def simulate(
     effects: list[Any] | tuple[Any, ...] = (),
     truth: Calibration | None = None,
     noise: float = 1.0,
+    latitude: float = DEFAULT_LATITUDE_DEG,
+    earth_rate: bool | None = None,
 ) -> Simulation:
     """Simulate a session. Returns raw data (ImuData), the truth and the trajectory.
 
@@ -294,6 +306,9 @@ def simulate(
     cal = truth if truth is not None else paper_truth(rng)
     # (the rest option only when given: tests replace make_trajectory with a 3-argument stand-in)
     traj = make_trajectory(name, rng, duration, **({"rest_s": opts["rest"]} if "rest" in opts else {}))
+    w_E = earth_rate_world(latitude)  # validates the latitude whether or not it is used
+    if earth_rate if earth_rate is not None else name in VEHICLES:
+        traj.earth_rate = w_E  # every evaluation (time_offset and lever_arm re-evaluate) includes it
     T = traj.duration if duration is None else min(duration, traj.duration)
     t_imu, t_mag = sample_times(T, imu_rate, mag_rate)
     mi, mm = traj.evaluate(t_imu), traj.evaluate(t_mag)
@@ -346,5 +361,7 @@ def simulate(
         cal, profile, seed, imu_rate, mag_rate, noise=sig, segments=traj.annotations(),
         effects=[{**e.describe(), **ctx.info.get(id(e), {})} for e in effects], field_world=h_W.tolist(),
         vehicle=vehicle,
+        earth_rate={} if getattr(traj, "earth_rate", None) is None else {
+            "latitude_deg": float(latitude), "world": np.asarray(traj.earth_rate).tolist()},
     )
     return Simulation(data, tr, traj)

@@ -72,7 +72,12 @@ class UKFConfig:
     max_gap_s: float = 0.5  # IMU gap that restarts the attitude
     rest_k: float = 2.0  # rest: per-axis spread below k σ, mean change below 2k σ √(2/L)
     rest_blocks: int = 3  # consecutive still blocks before the zero-rate update applies
-    rest_rate_sigma: float = 5e-5  # rad/s, allowance for micro-motion in a rest (zero-rate update)
+    # rad/s per axis, what a gyro at rest reads besides its bias (zero-rate update; on a vehicle also the
+    # gyro-bias floor and attitude noise of .vehicle.earth_rate_noise): the Earth's rotation, which the
+    # model lacks, Ω_E = 7.292115e-5 rad/s projected on the body axes — for a level body at an unknown
+    # heading and latitude (uniform over the Earth's surface: E[sin²φ] = 1/3) rms Ω_E/√3 on every axis
+    # (was 5e-5, "micro-motion"; with Earth rate in the flights' gyro that left the cold NEES ~0.6/dof)
+    rest_rate_sigma: float = 7.292115e-5 / 3**0.5
     trace_every_s: float = 1.0
     trace_max_rows: int = 100_000
     max_events: int = 1000  # events kept (oldest dropped beyond); the count of all is in nis_summary

@@ -30,7 +30,7 @@ from .propagate import sensor_models
 from .rest import RestAccumulator
 from .start import calibrated, mag_block
 from .unscented import Gating, Measurement, UpdateResult
-from .vehicle import VEHICLE_NOTE, rest_noise, vehicle_accel_var
+from .vehicle import VEHICLE_NOTE, earth_rate_noise, rest_noise, vehicle_accel_var
 
 if TYPE_CHECKING:
     from .filter import OnlineCalibrator
@@ -148,6 +148,9 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
     pred, sens = propagate_sigma_points(X, cal.R_nom, B, b, cal.lay.dyn_pts, use_mag, extra)
     dt_blk = float(t[-1] - cal._t_last)
     q = block_process_noise(cal._process_noise(dt_blk, n["gyro"]), B, b, dt_blk, n["gyro"], cal.P)
+    if cal._vehicle.active:  # the Earth's rotation, which the gyro model lacks (.vehicle.earth_rate_noise)
+        earth_rate_noise(q, cal.P, index("gyro", "bias"), float(np.mean(cal.x[index("gyro", "scale")])),
+                         cal.config.rest_rate_sigma, cal.config.vehicle_accel_tau, dt_blk)
     x_pred, Y, P_pred = predict_moments(X, cal._Wm, cal._Wc, q)
     cal.R_nom = pred.R_end[0]
     T_reg = float(np.mean(temp_reg(cal, T))) if has_temp(cal) else 0.0

@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..advice import faces_advice, faces_at_rest, missing_faces
+from .layout import ATT
 
 Array = NDArray[np.float64]
 AXES = ("x", "y", "z")
@@ -102,6 +103,44 @@ def vehicle_accel_var(sigma: float, tau: float, dt_block: float) -> float:
     acceleration of σ ``sigma`` correlated over ``tau`` s: σ² · max(1, τ/Δt) (one independent measurement
     per correlation time, spread over the blocks it covers)."""
     return float(sigma**2 * max(1.0, tau / max(dt_block, 1e-6)))
+
+
+# rad/s: the horizontal part of the Earth's rotation, Ω_E cos φ (Ω_E = 7.292115e-5 rad/s, WGS-84), rms over
+# latitudes uniform on the Earth's surface (E[cos²φ] = 2/3): Ω_E √(2/3). It turns the attitude about one
+# axis (north), at its full size, whose direction in the body frame the filter does not know
+OMEGA_E_HORIZONTAL_RMS = 7.292115e-5 * (2.0 / 3.0) ** 0.5
+
+
+def earth_rate_noise(q: Array, P: Array, bias: slice, s_gyr: float, sigma: float, tau: float, dt: float) -> Array:
+    """What the Earth's rotation, which the gyro model lacks, leaves unknown in flight: added in place to
+    the block's Q diagonal ``q`` (n,). ``P`` (n, n) the covariance Q adds to,
+    ``bias`` the gyro bias's slice, ``s_gyr`` the gyro's mean scale (the bias is in raw units), ``sigma``
+    rad/s the per-axis allowance for the Earth rate on the bias (:attr:`UKFConfig.rest_rate_sigma`, the
+    zero-rate update's), ``tau`` s the correlation time of the attitude disturbance
+    (:attr:`UKFConfig.vehicle_accel_tau`: one independent accelerometer measurement per τ_v), ``dt`` s.
+
+    A gyro senses Ω_E = 7.29e-5 rad/s (the Earth's sidereal rate) projected on its axes; in a local
+    level frame at latitude φ that is Ω_E sin φ up and Ω_E cos φ north. Two parts, two terms:
+
+    * **the gyro bias cannot be told from the Earth rate's projection**: the vertical part Ω_E sin φ lies on a
+      level vehicle's z axis for the whole flight, the horizontal part on x/y for as long as a heading is
+      held. With the magnetometer holding the heading the drift it corrects made the bias σ fall to ~3e-6
+      rad/s while its error was Ω_E sin 47.4° = 5.4e-5 (bench-started flights: gyro.bias.z 19–20σ off);
+      floored along the up axis only, the x/y bias σ of a cold flight still fell below the horizontal
+      part its rest had left in the estimate (multirotor seed 17: gyro.bias.y 3.47σ; 1.34σ with the floor
+      on every axis). So the bias variance on every axis is kept at or above σ² (the zero-rate update's
+      allowance), topped up only where the data took it lower;
+    * **the horizontal part turns with the heading in the body frame**, so no constant bias absorbs it: it
+      tilts the attitude at Ω_E cos φ (4.9e-5 rad/s at 47.4°) about north until the accelerometer or the
+      magnetometer corrects it. As a coloured rate error of that size (:data:`OMEGA_E_HORIZONTAL_RMS`,
+      about an axis the filter does not know: on every axis) correlated over τ, its white equivalent adds
+      Ω_h²·τ·dt to the attitude variance. Without it, bench-started flights ended their final ground rest
+      with the accel NIS climbing 4 → 44 (the landing tilt outside its σ; 82 of 555 rest updates
+      soft-gated, health degraded); with σ = Ω_E/√3 instead of Ω_h, one fixed-wing flight of two still
+      was (63 of 528)."""
+    q[bias] += np.maximum(0.0, (sigma / s_gyr) ** 2 - np.diag(P)[bias])
+    q[ATT] += OMEGA_E_HORIZONTAL_RMS**2 * tau * dt
+    return q
 
 
 @dataclass

@@ -326,7 +326,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
                      held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
     """:func:`.step.motion_step` for a block where :func:`applies`: the same steps, in the same order, with
     the arithmetic in :func:`predict_kernel` and :func:`update_fold_kernel`."""
-    from .step import commit_folded, gated_bookkeeping, vehicle_accel_from_dev  # (step imports this module)
+    from .step import commit_folded, earth_rate_q, gated_bookkeeping, vehicle_accel_from_dev  # (step imports this)
 
     c = cal.config
     tl = float(t[-1])
@@ -339,7 +339,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
     dt_blk = float(t[-1] - cal._t_last)
     s_g = n["gyro"]
-    q = cal._process_noise(dt_blk, s_g)
+    q = earth_rate_q(cal, cal._process_noise(dt_blk, s_g), dt_blk)
     jerk = 0.0
     if L >= 2:
         noise = float(B.jerk_n[b]) * 6.0 * (s_g * dt_blk / L / 4) ** 2

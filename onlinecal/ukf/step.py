@@ -130,6 +130,16 @@ def vehicle_event(cal: OnlineCalibrator, why: str | None, tl: float) -> None:
         cal._event("vehicle", why + VEHICLE_NOTE, tl)
 
 
+def earth_rate_q(cal: OnlineCalibrator, q: Array, dt_blk: float) -> Array:
+    """The block's Q diagonal ``q`` (n,) with, on a vehicle, what the Earth's rotation (which the gyro model
+    lacks) leaves unknown (:func:`.vehicle.earth_rate_noise`, in place); both motion paths call it (the
+    compiled one before its kernel adds the block's own terms: the terms are additive)."""
+    if cal._vehicle.active:
+        earth_rate_noise(q, cal.P, index("gyro", "bias"), float(np.mean(cal.x[index("gyro", "scale")])),
+                         cal.config.rest_rate_sigma, cal.config.vehicle_accel_tau, dt_blk)
+    return q
+
+
 def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T: Array, n: dict[str, float],
                 held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
     """Predict over the block, then one update with its mean accel (unless clipped) and mag."""
@@ -147,10 +157,8 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
                          calibrated(cal, "accel", a) if off.gsens is not None else None, T.shape[0])
     pred, sens = propagate_sigma_points(X, cal.R_nom, B, b, cal.lay.dyn_pts, use_mag, extra)
     dt_blk = float(t[-1] - cal._t_last)
-    q = block_process_noise(cal._process_noise(dt_blk, n["gyro"]), B, b, dt_blk, n["gyro"], cal.P)
-    if cal._vehicle.active:  # the Earth's rotation, which the gyro model lacks (.vehicle.earth_rate_noise)
-        earth_rate_noise(q, cal.P, index("gyro", "bias"), float(np.mean(cal.x[index("gyro", "scale")])),
-                         cal.config.rest_rate_sigma, cal.config.vehicle_accel_tau, dt_blk)
+    q = earth_rate_q(cal, block_process_noise(cal._process_noise(dt_blk, n["gyro"]), B, b, dt_blk, n["gyro"],
+                                              cal.P), dt_blk)
     x_pred, Y, P_pred = predict_moments(X, cal._Wm, cal._Wc, q)
     cal.R_nom = pred.R_end[0]
     T_reg = float(np.mean(temp_reg(cal, T))) if has_temp(cal) else 0.0

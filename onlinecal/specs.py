@@ -15,6 +15,7 @@ import numpy as np
 G0 = 9.80665  # m/s², standard gravity (the conventional value, CGPM 1901)
 FIELD_GAUSS = 0.48  # gauss, local geomagnetic field strength (central Europe)
 FIELD_DIP_DEG = 64.0  # deg, its inclination there
+OMEGA_EARTH = 7.292115e-5  # rad/s, the Earth's rotation (WGS-84): what a gyro at rest on the ground senses
 
 
 @dataclass(frozen=True)

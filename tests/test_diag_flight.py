@@ -45,3 +45,26 @@ def test_fixedwing_time_offset_reported_untestable() -> None:
     dg, _ = fs.run_one("fixedwing", 7100, 300.0, [eff])
     assert any(u.startswith("time_offset") and "rotation faster than 0.5 rad/s" in u for u in dg.untestable)
     assert not any(f.effect == "time_offset" for f in dg.significant)
+
+
+def test_gyro_nonlin_limit_is_the_datasheet_figure() -> None:
+    """GYRO_NONLIN_MAX against its definition, computed here by a least-squares straight line: raw·(1 + c|raw|)
+    over ±250 °/s deviates from its best-fit line by 0.2 % of full scale (MPU-6000's stated nonlinearity)."""
+    from onlinecal.diagnose.adequacy import GYRO_NONLIN_MAX
+
+    F = np.radians(250.0)
+    x = np.linspace(-F, F, 200001)
+    y = x * (1 + GYRO_NONLIN_MAX * np.abs(x))
+    fit = np.polyval(np.polyfit(x, y, 1), x)
+    assert np.max(np.abs(y - fit)) / F == pytest.approx(0.002, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_multirotor_gyro_nonlinearity_reported_unresolvable() -> None:
+    # the multirotor's gentle turns resolve the coefficient to ~2e-2 per rad/s (5 σ): a hidden 5e-3 is
+    # reported as beyond what the data can test, not missed in silence or named by chance
+    eff = fs.flight_effect("scale_nonlinearity", np.random.default_rng(9103), None)
+    dg, _ = fs.run_one("multirotor", 7103, 300.0, [eff])
+    why = [u for u in dg.untestable if u.startswith("scale_nonlinearity (gyro)")]
+    assert why and "datasheet" in why[0], dg.untestable
+    assert not any(f.effect == "scale_nonlinearity" and f.sensor == "gyro" for f in dg.significant)

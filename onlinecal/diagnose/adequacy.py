@@ -68,11 +68,39 @@ REQUIRES: dict[str, str] = {
     "temperature_bias": "≥ 10 Hz, ≥ 60 s, a temperature range ≥ 2 °C",
     "bias_drift": "≥ 10 Hz, ≥ 60 s",
     "g_sensitivity": "≥ 10 Hz, rests (≥ 1 s) in ≥ 3 gravity directions ≥ 30° apart",
-    "scale_nonlinearity": "≥ 50 Hz, ≥ 10 s of rotation faster than 0.5 rad/s",
+    "scale_nonlinearity": "≥ 50 Hz, ≥ 10 s of rotation faster than 0.5 rad/s; for the gyro, rates that "
+                          "resolve 1.8e-3 per rad/s at 5 σ (the datasheet limit, nonlin_resolution)",
     "lever_arm": "≥ 50 Hz, ≥ 10 s of rotation faster than 0.5 rad/s, gravity-dominated specific force",
     "time_offset": "≥ 50 Hz, ≥ 10 s of rotation faster than 0.5 rad/s",
     "mag_current": "≥ 10 Hz, " + MAG_CURRENT_REQUIREMENT,  # diagnose/magcurrent.py
 }
+
+
+# The largest gyro nonlinearity a MEMS datasheet allows: 0.2 % of full scale, best-fit straight line
+# (MPU-6000; ICM-20602 and BMI088 state 0.1 % and 0.05 %), at the smallest common range, ±250 °/s. For the
+# model's raw·(1 + c·|raw|) on [−F, F] the best straight line is (3cF/4)·raw and the largest deviation is
+# cF²/4 (at ±F), so NL = cF/4 of full scale and c = 4·NL/F = 1.8e-3 per rad/s.
+GYRO_NONLIN_MAX = 4.0 * 0.002 / float(np.radians(250.0))
+NONLIN_SNR = 5.0  # the coefficient the data must resolve, in σ of its estimate
+
+
+def nonlin_resolution(an: Analysis, key: str = "scale_nonlinearity:gyro") -> tuple[Array, str | None]:
+    """Per-axis σ of the gyro nonlinearity coefficient this data gives (1/(rad/s)), fitted with the baseline's
+    nuisance, and why the candidate is untestable (None: testable): the rotation rates it holds must let
+    even the largest nonlinearity a datasheet allows (:data:`GYRO_NONLIN_MAX`) stand at :data:`NONLIN_SNR` σ
+    on some axis. A turn at one rate makes raw·|raw| a multiple of raw, which the baseline's scale absorbs;
+    a multirotor's gentle turns (|ω| mostly under 0.5 rad/s) leave σ ≈ 4e-3, above any real part's value."""
+    if key not in an.blocks:
+        return np.zeros(0), None
+    _, C = an.problem.fit(["nuisance"] + an.blocks[key])
+    sig = np.sqrt(np.maximum(np.diag(C)[-3:], 0.0))
+    res = NONLIN_SNR * sig
+    if float(res.min()) <= GYRO_NONLIN_MAX:
+        return sig, None
+    return sig, (f"scale_nonlinearity (gyro): the rotation rates in this data resolve a coefficient of "
+                 f"{', '.join(f'{x:.2g}' for x in res)} per rad/s (x, y, z; {NONLIN_SNR:g} σ), more than the "
+                 f"largest a MEMS datasheet allows ({GYRO_NONLIN_MAX:.2g}: 0.2 % of ±250 °/s) — turns at "
+                 f"several rates, some fast, are needed")
 
 
 def _group(name: str) -> str:

@@ -19,8 +19,9 @@ from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
 
 from ..model import Calibration
+from ..specs import OMEGA_EARTH
 from .detectors import Candidate, candidates, drift_knots, drift_prior
-from .regressors import SUBCHANNELS, Design, nuisance
+from .regressors import SUBCHANNELS, Design, earth_rate, nuisance
 from .score import FOLD_S, Gain, Problem, folds, robust_sigma, solve
 
 Array = NDArray[np.float64]
@@ -89,6 +90,8 @@ class Analysis:
     first: dict[str, Gain] = field(default_factory=dict)  # each candidate against the baseline alone
     rows: Any = None  # (y, ch, t, sid, cols) before any channel is dropped (for :func:`restrict`)
     dropped: tuple[str, ...] = ()  # sub-channels left out (the baseline does not meet them)
+    # (S, 3) rad/s: the Earth's rotation fitted per session (its first body frame) and taken out of the rows
+    earth_rate: Array = field(default_factory=lambda: np.zeros((0, 3)))
 
     def score(self, base: list[str], key: str) -> Gain:
         with one_blas_thread():
@@ -197,6 +200,11 @@ def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = No
     has_temp = any(d.s.has_temp for d in designs)
     cands = [c for c in candidates(has_mag, has_temp) if only is None or c.key in only]
     cols: dict[str, Array] = {"nuisance": np.concatenate([nuisance(d) for d in designs], axis=0)}
+    # the Earth's rotation is part of what a gyro measures, not a model error: fitted within its known norm
+    # and taken out of the rows before any effect is scored
+    E = [earth_rate(d) for d in designs]
+    v_earth = fit_earth_rate(y, ch, cols["nuisance"], E)
+    y = y - np.concatenate([e @ v for e, v in zip(E, v_earth, strict=True)])
     blocks: dict[str, list[str]] = {}
     offs = np.cumsum([0] + [d.y.size for d in designs])
     for c in cands:
@@ -215,13 +223,73 @@ def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = No
             blocks[c.key] = [c.key]
     for k in cols:  # a column undefined somewhere (no clean signal there) carries no information there
         cols[k] = np.nan_to_num(cols[k], nan=0.0, posinf=0.0, neginf=0.0)
-    return _finish(designs, cal, cands, blocks, (y, ch, t, sid, cols), drop)
+    an = _finish(designs, cal, cands, blocks, (y, ch, t, sid, cols), drop)
+    an.earth_rate = v_earth
+    return an
+
+
+def _trust_region(H: Array, g: Array, r: float) -> Array:
+    """argmin ½ vᵀHv − gᵀv subject to |v| ≤ r, H symmetric positive semi-definite (the trust-region
+    subproblem: v(λ) = (H + λI)⁻¹ g with the λ ≥ 0 that puts v on the bound when the free minimum is
+    outside it; |v(λ)| falls with λ, found by bisection on a log scale)."""
+    e, Q = np.linalg.eigh(H)
+    e = np.maximum(e, 0.0)
+    gq = Q.T @ g
+
+    def v(lam: float) -> Array:
+        return cast(Array, Q @ (gq / np.maximum(e + lam, 1e-300)))
+
+    if e.min() > 1e-12 * max(e.max(), 1e-300) and np.linalg.norm(v(0.0)) <= r:
+        return v(0.0)
+    hi = max(float(np.linalg.norm(g)) / r, 1e-300) * 2.0  # |v(hi)| ≤ |g|/hi < r
+    lo = hi * 1e-30
+    for _ in range(200):  # |v(hi)| ≤ r throughout: the answer never leaves the bound
+        mid = float(np.sqrt(lo * hi))
+        if np.linalg.norm(v(mid)) > r:
+            lo = mid
+        else:
+            hi = mid
+        if hi / lo < 1.0 + 1e-9:
+            break
+    return v(hi)
+
+
+def fit_earth_rate(y: Array, ch: Array, N: Array, E: list[Array], sweeps: int = 30) -> Array:
+    """The Earth-rate vector Ω_w of each session (its first body frame; (S, 3) rad/s), fitted with the
+    baseline's nuisance N and bounded by its known norm, |Ω_w| ≤ Ω_E: least squares on the rows whitened by
+    the baseline's residual σ, N projected out, then the trust-region subproblem per session (block
+    coordinate descent when sessions share the nuisance — a convex problem, so the sweeps converge).
+
+    Without the bound a free Ω_w would take an isotropic g-sensitivity whole wherever the gravity is the
+    only world vector the body sees (:func:`.regressors.earth_rate`); with it, at most Ω_E of one."""
+    N = np.nan_to_num(N, nan=0.0, posinf=0.0, neginf=0.0)  # undefined somewhere: no information there
+    beta = solve(N.T @ N, N.T @ y)[0]
+    w = 1.0 / robust_sigma(y - N @ beta, ch, len(SUBCHANNELS))[ch]
+    offs = np.cumsum([0] + [e.shape[0] for e in E])
+    Ef = np.zeros((y.size, 3 * len(E)))
+    for i, e in enumerate(E):
+        Ef[offs[i] : offs[i + 1], 3 * i : 3 * i + 3] = np.nan_to_num(e)
+    Nw, Ew, yw = N * w[:, None], Ef * w[:, None], y * w
+    GN = Nw.T @ Nw
+    proj = solve(GN, Nw.T @ np.column_stack([Ew, yw]))[0]  # (solve takes a matrix right-hand side too)
+    R = np.column_stack([Ew, yw]) - Nw @ proj
+    H, g = R[:, :-1].T @ R[:, :-1], R[:, :-1].T @ R[:, -1]
+    S = len(E)
+    v = np.zeros(3 * S)
+    for _ in range(sweeps if S > 1 else 1):
+        for i in range(S):
+            ix = slice(3 * i, 3 * i + 3)
+            gi = g[ix] - H[ix] @ v + H[ix, ix] @ v[ix]
+            v[ix] = _trust_region(H[ix, ix], gi, OMEGA_EARTH)
+    return v.reshape(S, 3)
 
 
 def restrict(an: Analysis, drop: tuple[str, ...]) -> Analysis:
     """The same analysis with the rows of the sub-channels ``drop`` left out (columns are not rebuilt; the
     whitening and the drift densities are refitted on the rows kept)."""
-    return _finish(an.designs, an.cal, an.cands, an.blocks, an.rows, tuple(drop))
+    out = _finish(an.designs, an.cal, an.cands, an.blocks, an.rows, tuple(drop))
+    out.earth_rate = an.earth_rate
+    return out
 
 
 def _finish(designs: list[Design], cal: Calibration, cands: list[Candidate], blocks: dict[str, list[str]],

@@ -32,9 +32,18 @@ from ..batch.ellipsoid import FitError
 from ..batch.segment import noise_floors, segment
 from ..io.base import ImuData
 from ..model import Calibration
-from ..specs import G0
+from ..specs import G0, OMEGA_EARTH
 from . import magcurrent
-from .adequacy import ACCEL_KINEMATIC_EFFECTS, ADEQ_MAX, MIN_RATE_HZ, REQUIRES, Adequacy, assess, coverage
+from .adequacy import (
+    ACCEL_KINEMATIC_EFFECTS,
+    ADEQ_MAX,
+    MIN_RATE_HZ,
+    REQUIRES,
+    Adequacy,
+    assess,
+    coverage,
+    nonlin_resolution,
+)
 from .analysis import Analysis, analyse, channel_mask, one_blas_thread, restrict
 from .detectors import Handedness, Saturated, candidates, find_axis_sign, find_saturation
 from .gaps import excluded_text, split_at_gaps
@@ -323,6 +332,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
             f"sees specific force other than gravity in motion (|a| − g RMS {la['a_norm_rms_m_s2']:.3g} m/s² "
             f"against {la['a_norm_noise_m_s2']:.2g} from noise; {la['worst']} {la['ratio']:.0f}× its simulated "
             f"RMS) while |a| = g holds at rest: linear acceleration (thrust, a carrying hand), not a model error")
+    if (why_nl := nonlin_resolution(an)[1]) is not None:
+        blocked_keys.add("scale_nonlinearity:gyro")
+        untestable.append(why_nl)
     if (why_mc := magcurrent.untestable_after(adq.drop, an.first)) is not None:  # diagnose/magcurrent.py
         blocked_keys |= set(magcurrent.KEYS)
         untestable.append(why_mc)
@@ -401,6 +413,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         "adequacy": adq.to_dict(),
         "coverage": cov.to_dict(),
         "gyro_bias_rests": gbr,
+        # the Earth's rotation the gyro senses, fitted within |Ω| ≤ Ω_E and taken out before scoring
+        "earth_rate": [{"rad_s": [float(x) for x in v], "norm": float(np.linalg.norm(v)), "bound": OMEGA_EARTH,
+                        "frame": "the session's first body frame"} for v in an.earth_rate],
         "excluded": excluded,
     }
     untestable += _untestable(designs, an)

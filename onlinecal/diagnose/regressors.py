@@ -355,3 +355,19 @@ def nuisance(d: Design) -> Array:
 
 
 N_NUISANCE = 37
+
+
+def earth_rate(d: Design) -> Array:
+    """Response to the Earth's rotation (Ω_E = 7.29e-5 rad/s): a gyro senses a rate that is constant in a
+    level frame, so in the body R(t)ᵀ Ω_w with R (world ← body) the attitude — a bias while the vehicle
+    keeps its heading, but one that moves between the axes when it turns (a fixed-wing's circuit carries
+    Ω_E cos φ ≈ 5e-5 rad/s from x to y and back, which a constant-bias baseline leaves to ``bias_drift``).
+    Three columns, δω = R(t)ᵀ e_k, R integrated from the calibrated gyro with the session's first body
+    frame as the world (each session has its own). Not a free nuisance: Ω_w's norm is known, and where
+    the gravity is the only world vector the body sees (rests, a platform turning about a fixed point) an
+    isotropic g-sensitivity G = c·I has the same columns — :func:`.analysis.fit_earth_rate` bounds it.
+    (rows, 3)."""
+    w = np.where(np.isfinite(d.s.w), d.s.w, 0.0)
+    R = integrate_attitude(w, d.s.t)
+    # R(t)ᵀ e_k is row k of R(t): cols[k, n, :] = R[n, k, :]
+    return d.response(dg=np.ascontiguousarray(np.transpose(R, (1, 0, 2))))

@@ -56,7 +56,8 @@ def solve(G: Array, c: Array, want_inv: bool = False) -> tuple[Array, Array]:
     Gs = G / np.outer(d, d)
     Gs[np.diag_indices_from(Gs)] += 1e-10
     cf = cho_factor(Gs, check_finite=False)
-    beta = cho_solve(cf, c / d, check_finite=False) / d
+    dc = d if c.ndim == 1 else d[:, None]
+    beta = cho_solve(cf, c / dc, check_finite=False) / dc
     if not want_inv:
         return beta, np.zeros((0, 0))
     inv = cho_solve(cf, np.eye(G.shape[0]), check_finite=False) / np.outer(d, d)

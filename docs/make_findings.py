@@ -27,7 +27,10 @@ from onlinecal.io import read_log  # noqa: E402
 
 UKF_WINDOW = 100  # UKFConfig.nis_window, the updates one NIS window averages
 CAVEATS = (
-    "Caveats. The re-simulation is the fitted paper model driven by the attitude the baseline reconstructs: it "
+    "Caveats. The gyro's Earth-rate vector is fitted per session within its known norm before effects are "
+    "scored; at the bound it has taken Ω_E of something else too (at rests the vertical Earth rate and an "
+    "isotropic g-sensitivity are one column, docs/contract-changes.md). "
+    "The re-simulation is the fitted paper model driven by the attitude the baseline reconstructs: it "
     "rotates the sensor about a fixed point, so any linear acceleration in the data is absent from it. The MARG "
     "files are hand-held — the hand translates as well as turns — so a lever_arm finding on them most likely "
     "stands for that linear acceleration, not for an accelerometer offset from a centre of rotation, and "
@@ -89,6 +92,11 @@ def section(title: str, diag: Diagnosis | None, error: str | None = None) -> lis
         c = chk[w]
         L.append(f"Simulator check on {w}: measured {c['measured_rms']:.3g}, paper-model simulation "
                  f"{c['simulated_rms']:.3g}, extended simulation {c['simulated_extended_rms']:.3g} (units of σ).")
+    er = diag.baseline.get("earth_rate") or []
+    if er:
+        L.append("Earth's rotation taken out of the gyro (fitted, |Ω| ≤ Ω_E = 7.29e-5 rad/s): "
+                 + ", ".join(f"{e['norm']:.3g} rad/s" + (" (at the bound)" if e["norm"] >= 0.999 * e["bound"] else "")
+                             for e in er) + ".")
     if diag.baseline.get("ukf"):
         L.append(f"UKF NIS (window mean per update, expected 3): paper model {_ukf_txt(diag.baseline['ukf'])}"
                  + (f", extended {_ukf_txt(diag.ukf_extended)}" if diag.ukf_extended else "") + ".")

@@ -49,5 +49,10 @@ def test_fixedwing_earth_rate_fitted_and_not_read_as_drift() -> None:
     R0 = sm.trajectory.evaluate(np.array([sm.data.t_imu[0]])).R[0]  # world ← body at the log's first sample
     truth = R0.T @ np.array(sm.truth.earth_rate["world"])
     assert np.linalg.norm(est) <= OMEGA_EARTH * (1 + 1e-9)
-    # the fixed-wing turns through every heading: the horizontal part is seen; within a fifth of Ω_E
-    assert np.linalg.norm(est - truth) < 0.2 * OMEGA_EARTH, (est, truth)
+    # the fixed-wing turns through every heading: the horizontal part is seen, within a fifth of Ω_E; the
+    # vertical part stays along the body's up axis in level flight, where it is one column with the gyro's
+    # bias — not determined, and the bound keeps it at its smallest
+    up = R0.T @ np.array([0.0, 0.0, 1.0])
+    horiz = np.eye(3) - np.outer(up, up)
+    assert np.linalg.norm(horiz @ (est - truth)) < 0.2 * OMEGA_EARTH, (est, truth)
+    assert np.linalg.norm(horiz @ truth) > 0.6 * OMEGA_EARTH  # (Ω_E cos 47.4°: the check has something to see)

@@ -92,7 +92,12 @@ def nonlin_resolution(an: Analysis, key: str = "scale_nonlinearity:gyro") -> tup
     a multirotor's gentle turns (|ω| mostly under 0.5 rad/s) leave σ ≈ 4e-3, above any real part's value."""
     if key not in an.blocks:
         return np.zeros(0), None
-    _, C = an.problem.fit(["nuisance"] + an.blocks[key])
+    # the σ the noise alone allows (the Gram inverse of the whitened rows), not scaled by the residual's
+    # variance: an effect the baseline lacks (a time offset of 120,000 nats) must not make the data look
+    # unable to resolve another
+    P = an.problem
+    ix = P.idx(["nuisance"] + an.blocks[key])
+    _, C = P._fit(P.G[0] + P.G[1], ix, None, want_inv=True)
     sig = np.sqrt(np.maximum(np.diag(C)[-3:], 0.0))
     res = NONLIN_SNR * sig
     if float(res.min()) <= GYRO_NONLIN_MAX:

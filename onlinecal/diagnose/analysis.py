@@ -25,6 +25,7 @@ from .regressors import SUBCHANNELS, Design, earth_rate, nuisance
 from .score import FOLD_S, Gain, Problem, folds, robust_sigma, solve
 
 Array = NDArray[np.float64]
+EARTH = "earth_rate"  # the rows' key for the Earth-rate response (not a column block of the Problem)
 Q_GRID = {"gyro": np.logspace(-6.5, -2.0, 10), "accel": np.logspace(-5.5, -1.0, 10)}
 # channels each candidate acts on (for the before/after RMS)
 # Set to 1 to let the BLAS library pick its own thread count in the small solves below (the previous
@@ -200,11 +201,15 @@ def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = No
     has_temp = any(d.s.has_temp for d in designs)
     cands = [c for c in candidates(has_mag, has_temp) if only is None or c.key in only]
     cols: dict[str, Array] = {"nuisance": np.concatenate([nuisance(d) for d in designs], axis=0)}
-    # the Earth's rotation is part of what a gyro measures, not a model error: fitted within its known norm
-    # and taken out of the rows before any effect is scored
+    # the Earth's rotation is part of what a gyro measures, not a model error: its response (block-diagonal
+    # over sessions) is fitted within its known norm in _finish, on the rows kept, and taken out of them
     E = [earth_rate(d) for d in designs]
-    v_earth = fit_earth_rate(y, ch, cols["nuisance"], E)
-    y = y - np.concatenate([e @ v for e, v in zip(E, v_earth, strict=True)])
+    Ef = np.zeros((y.size, 3 * len(E)))
+    r = 0
+    for i, e in enumerate(E):
+        Ef[r : r + e.shape[0], 3 * i : 3 * i + 3] = e
+        r += e.shape[0]
+    cols[EARTH] = Ef
     blocks: dict[str, list[str]] = {}
     offs = np.cumsum([0] + [d.y.size for d in designs])
     for c in cands:
@@ -223,9 +228,7 @@ def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = No
             blocks[c.key] = [c.key]
     for k in cols:  # a column undefined somewhere (no clean signal there) carries no information there
         cols[k] = np.nan_to_num(cols[k], nan=0.0, posinf=0.0, neginf=0.0)
-    an = _finish(designs, cal, cands, blocks, (y, ch, t, sid, cols), drop)
-    an.earth_rate = v_earth
-    return an
+    return _finish(designs, cal, cands, blocks, (y, ch, t, sid, cols), drop)
 
 
 def _trust_region(H: Array, g: Array, r: float) -> Array:
@@ -254,7 +257,7 @@ def _trust_region(H: Array, g: Array, r: float) -> Array:
     return v(hi)
 
 
-def fit_earth_rate(y: Array, ch: Array, N: Array, E: list[Array], sweeps: int = 30) -> Array:
+def fit_earth_rate(y: Array, ch: Array, N: Array, Ef: Array, sweeps: int = 30) -> Array:
     """The Earth-rate vector Ω_w of each session (its first body frame; (S, 3) rad/s), fitted with the
     baseline's nuisance N and bounded by its known norm, |Ω_w| ≤ Ω_E: least squares on the rows whitened by
     the baseline's residual σ, N projected out, then the trust-region subproblem per session (block
@@ -265,16 +268,13 @@ def fit_earth_rate(y: Array, ch: Array, N: Array, E: list[Array], sweeps: int = 
     N = np.nan_to_num(N, nan=0.0, posinf=0.0, neginf=0.0)  # undefined somewhere: no information there
     beta = solve(N.T @ N, N.T @ y)[0]
     w = 1.0 / robust_sigma(y - N @ beta, ch, len(SUBCHANNELS))[ch]
-    offs = np.cumsum([0] + [e.shape[0] for e in E])
-    Ef = np.zeros((y.size, 3 * len(E)))
-    for i, e in enumerate(E):
-        Ef[offs[i] : offs[i + 1], 3 * i : 3 * i + 3] = np.nan_to_num(e)
+    Ef = np.nan_to_num(Ef, nan=0.0, posinf=0.0, neginf=0.0)
     Nw, Ew, yw = N * w[:, None], Ef * w[:, None], y * w
     GN = Nw.T @ Nw
     proj = solve(GN, Nw.T @ np.column_stack([Ew, yw]))[0]  # (solve takes a matrix right-hand side too)
     R = np.column_stack([Ew, yw]) - Nw @ proj
     H, g = R[:, :-1].T @ R[:, :-1], R[:, :-1].T @ R[:, -1]
-    S = len(E)
+    S = Ef.shape[1] // 3
     v = np.zeros(3 * S)
     for _ in range(sweeps if S > 1 else 1):
         for i in range(S):
@@ -287,9 +287,7 @@ def fit_earth_rate(y: Array, ch: Array, N: Array, E: list[Array], sweeps: int = 
 def restrict(an: Analysis, drop: tuple[str, ...]) -> Analysis:
     """The same analysis with the rows of the sub-channels ``drop`` left out (columns are not rebuilt; the
     whitening and the drift densities are refitted on the rows kept)."""
-    out = _finish(an.designs, an.cal, an.cands, an.blocks, an.rows, tuple(drop))
-    out.earth_rate = an.earth_rate
-    return out
+    return _finish(an.designs, an.cal, an.cands, an.blocks, an.rows, tuple(drop))
 
 
 def _finish(designs: list[Design], cal: Calibration, cands: list[Candidate], blocks: dict[str, list[str]],
@@ -299,6 +297,11 @@ def _finish(designs: list[Design], cal: Calibration, cands: list[Candidate], blo
     if not keep.all():
         y, ch, t, sid = y[keep], ch[keep], t[keep], sid[keep]
         cols = {k: v[keep] for k, v in cols.items()}
+    cols = dict(cols)
+    # fitted on the rows kept: where the accelerometer's kinematic rows carry thrust they are dropped first
+    Ek = cols.pop(EARTH)
+    v_earth = fit_earth_rate(y, ch, cols["nuisance"], Ek)
+    y = y - Ek @ v_earth.ravel()
     fold = folds(t, sid)
     # whitening σ from the baseline's residual over all rows
     X0 = cols["nuisance"]
@@ -316,7 +319,7 @@ def _finish(designs: list[Design], cal: Calibration, cands: list[Candidate], blo
                 q[c.key], q_lr[c.key], pri = _fit_density(P, ["nuisance"], blocks[c.key], Ks, dts,
                                                           Q_GRID[c.sensor])
             priors.update(pri)
-    an = Analysis(P, designs, cal, cands, blocks, priors, q, q_lr, rows=rows, dropped=drop)
+    an = Analysis(P, designs, cal, cands, blocks, priors, q, q_lr, rows=rows, dropped=drop, earth_rate=v_earth)
     for c in cands:
         an.first[c.key] = an.score(["nuisance"], c.key)
     return an

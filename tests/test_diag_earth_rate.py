@@ -56,3 +56,8 @@ def test_fixedwing_earth_rate_fitted_and_not_read_as_drift() -> None:
     horiz = np.eye(3) - np.outer(up, up)
     assert np.linalg.norm(horiz @ (est - truth)) < 0.2 * OMEGA_EARTH, (est, truth)
     assert np.linalg.norm(horiz @ truth) > 0.6 * OMEGA_EARTH  # (Ω_E cos 47.4°: the check has something to see)
+
+
+def test_trust_region_with_nothing_to_fit_is_zero() -> None:
+    # every gyro-responding row left out (a baseline that meets none of them): no pull, no division by zero
+    assert np.array_equal(_trust_region(np.zeros((3, 3)), np.zeros(3), OMEGA_EARTH), np.zeros(3))

@@ -235,6 +235,8 @@ def _trust_region(H: Array, g: Array, r: float) -> Array:
     """argmin ½ vᵀHv − gᵀv subject to |v| ≤ r, H symmetric positive semi-definite (the trust-region
     subproblem: v(λ) = (H + λI)⁻¹ g with the λ ≥ 0 that puts v on the bound when the free minimum is
     outside it; |v(λ)| falls with λ, found by bisection on a log scale)."""
+    if not np.any(g):  # no row responds (all dropped, or no rotation seen): nothing pulls it off zero
+        return np.zeros_like(g)
     e, Q = np.linalg.eigh(H)
     e = np.maximum(e, 0.0)
     gq = Q.T @ g
@@ -244,8 +246,8 @@ def _trust_region(H: Array, g: Array, r: float) -> Array:
 
     if e.min() > 1e-12 * max(e.max(), 1e-300) and np.linalg.norm(v(0.0)) <= r:
         return v(0.0)
-    hi = max(float(np.linalg.norm(g)) / r, 1e-300) * 2.0  # |v(hi)| ≤ |g|/hi < r
-    lo = hi * 1e-30
+    hi = float(np.linalg.norm(g)) / r * 2.0  # |v(hi)| ≤ |g|/hi < r
+    lo = max(hi * 1e-30, float(np.finfo(float).tiny))
     for _ in range(200):  # |v(hi)| ≤ r throughout: the answer never leaves the bound
         mid = float(np.sqrt(lo * hi))
         if np.linalg.norm(v(mid)) > r:

@@ -51,6 +51,8 @@ from .motion import prepare
 from .regressors import SUBCHANNELS, Design
 from .resim import resimulate
 from .result import Diagnosis, Finding
+from .sample import bounded_sample
+from .sample import note as sample_note
 from .stats import channel_stats, rest_stats
 
 Array = NDArray[np.float64]
@@ -221,13 +223,17 @@ def _baseline(logs: list[ImuData], g: float, calibration: Calibration | None) ->
 
 @one_blas_thread()  # small solves throughout: BLAS threads only spin (analysis.one_blas_thread)
 def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = True,
-             calibration: Calibration | None = None, ukf: bool = True) -> Diagnosis:
+             calibration: Calibration | None = None, ukf: bool = True,
+             sampled: dict[str, Any] | None = None) -> Diagnosis:
     """Model-discrepancy discovery over the logs of one sensor unit (module docstring).
 
     ``seed`` seeds the re-simulation's noise; ``check`` runs stage 5 (the extended simulator against the
     measured statistics); ``calibration``: use this baseline (e.g. the unit's campaign calibration, for a
     session too short or too still to calibrate on its own) instead of running the batch on ``logs``;
-    ``ukf``: run stage 6 (the UKF from the baseline, and with the extension; NIS before/after).
+    ``ukf``: run stage 6 (the UKF from the baseline, and with the extension; NIS before/after). Logs over
+    :data:`.sample.BUDGET` IMU samples are diagnosed on a bounded sample of themselves (:mod:`.sample`);
+    ``sampled``: the description of such a sample the caller already took (the CLI, so that it need not hold
+    the whole log), stated in the result as if taken here.
     Raises FitError when the batch cannot calibrate anything.
     """
     t_start = time.perf_counter()
@@ -236,6 +242,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     if not logs:
         raise FitError("no IMU samples in the logs")
     sources = list(dict.fromkeys(d.source for d in logs))
+    # a log over the budget is diagnosed on evenly spaced windows of itself (memory constant in its length)
+    logs, taken = bounded_sample(logs)
+    sampled = taken or sampled
     # holes in the time line (a NaN burst the reader dropped, a logging gap) cut a log into pieces
     logs, excluded = split_at_gaps(logs)
     if not logs:
@@ -417,7 +426,13 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         "earth_rate": [{"rad_s": [float(x) for x in v], "norm": float(np.linalg.norm(v)), "bound": OMEGA_EARTH,
                         "frame": "the session's first body frame"} for v in an.earth_rate],
         "excluded": excluded,
+        "bounded_sample": sampled,
     }
+    if sampled is not None:
+        baseline["notes"].insert(0, sample_note(sampled))
+        for f in findings:
+            f.evidence += (f" (On a bounded sample of the log: {sampled['n_kept']} of {sampled['n_imu']} IMU "
+                           "samples in evenly spaced windows, baseline.bounded_sample.)")
     untestable += _untestable(designs, an)
     diag = Diagnosis(baseline, findings, ext_cal, untestable, {}, timing, sources)
     diag._parts = (an, null, chosen, model, full_an, full_null)  # type: ignore[attr-defined]

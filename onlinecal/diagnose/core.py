@@ -75,6 +75,24 @@ def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
     return out
 
 
+def _share_walks(designs: list[Design], logs: list[ImuData], sampled: dict[str, Any] | None) -> None:
+    """The windows of one sampled log (:mod:`.sample`) share one drift walk over the log's whole span: a bias
+    that wandered between two windows is the same walk's value there, not an offset the model lacks (with a
+    walk per window, 1-hour flight with a gyro walk of 1e-4 rad/s/√s: density 5.9e-4 and a spurious
+    temperature_bias, the windows' offsets following the rising temperature)."""
+    if sampled is None:
+        return
+    for d in designs:
+        t0, t1 = float(d.s.t[0]), float(d.s.t[-1])
+        src = logs[d.sid].source
+        for j, p in enumerate(sampled["logs"]):
+            w = p["windows_s"]
+            # a window of that log (a re-stamped clock may differ from the stamps by a fraction of a second)
+            if p["source"] == src and w[0][0] - 1.0 <= t0 and t1 <= w[-1][1] + 1.0:
+                d.drift_group, d.drift_span = ("sample", j), (float(w[0][0]), float(w[-1][1]))
+                break
+
+
 def _threshold(k: float, n: int, null: float, spread: float = 0.0) -> float:
     """Significance bar (nats): the largest of the BIC penalty ½·k·ln n, the re-simulation's score plus a
     margin, and Z_SPREAD standard deviations of the candidate's held-out gain over the time blocks of the
@@ -297,6 +315,7 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     # -- 2. residual channels, measured and re-simulated -------------------------------------------
     t0 = time.perf_counter()
     designs = _designs(logs, cal, res.segmentations, g, exclude)
+    _share_walks(designs, logs, sampled)
     if not designs:
         raise FitError("no log long enough to diagnose (≥ 50 IMU samples)")
     cov = coverage(designs)
@@ -309,7 +328,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     for dz, sl in zip(designs, sim_logs, strict=True):
         ss = prepare(sl, cal, dz.s.rests)
         ss.restamped = dz.s.restamped
-        null_designs.append(Design(ss, g, dz.sid))
+        nd = Design(ss, g, dz.sid)
+        nd.drift_group, nd.drift_span = dz.drift_group, dz.drift_span
+        null_designs.append(nd)
     null = analyse(null_designs, cal, only=[c.key for c in an.cands])
     timing["null"] = time.perf_counter() - t0
     # -- 2c. is the baseline adequate? (invariants it does not meet are named and left out) ---------------

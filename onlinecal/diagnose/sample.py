@@ -10,12 +10,13 @@ log, the first at its start and the last at its end (a flight's ground rests bef
 landing are the only rests it has; the gyro bias and the ``g_rest`` rows come from them), as many as the
 log's share of the budget holds. Each window is a contiguous stretch of the log, analysed as a separate log
 of the same unit (as the pieces between holes are, :mod:`.gaps`), so no integral or smoothing window
-bridges a dropped stretch; what the windows keep of the slow effects (temperature, drift) is their spread
-over the whole log.
+bridges a dropped stretch; the slow effects are seen through the windows' spread over the whole log
+(temperature), and the windows of one log share one drift walk over its span (``core._share_walks``: the
+knots between windows have no rows, the walk's prior ties them).
 
-What is lost, stated with the result: motion that only happens between the windows, and the drift walk's
-continuity between windows (each window's walk starts from the common bias). The sample is said in
-``baseline.bounded_sample`` and in every finding's evidence.
+What is lost, stated with the result: motion that only happens between the windows, and the statistical
+power of the dropped samples. The sample is said in ``baseline.bounded_sample`` and in every finding's
+evidence.
 """
 
 from __future__ import annotations
@@ -90,5 +91,4 @@ def note(info: dict[str, Any]) -> str:
     kept_s = sum(t1 - t0 for p in info["logs"] for t0, t1 in p["windows_s"])
     return (f"diagnosed on a bounded sample: {info['n_kept']} of {info['n_imu']} IMU samples (budget "
             f"{info['budget']}), {w} windows of ~{kept_s / max(w, 1):.0f} s evenly spaced over {dur:.0f} s of log "
-            "(memory constant in the log's length; effects seen only between the windows are not tested, and "
-            "the drift walk restarts at each window)")
+            "(memory constant in the log's length; effects seen only between the windows are not tested)")

@@ -583,9 +583,15 @@ def cmd_diagnose(a: argparse.Namespace) -> int:
     _check_out(a.report, "--report", directory=True)
     out = _human(a.json)
     init = _load_cal(a.init) if a.init else None  # a bad --init file is refused before the logs are read
+    from .diagnose.sample import bounded_sample
+
     logs = _read_logs(a.logs, a)
+    n_imu = sum(d.n_imu for d in logs)
+    # a long log is diagnosed on a bounded sample of itself (diagnose/sample.py); taken here, so that the whole
+    # log is not held while the diagnosis runs (its health below is judged on the same sample)
+    logs, sampled = bounded_sample(logs)
     with spinner("diagnose (batch, detectors, re-simulation, UKF)"):
-        diag = diagnose(logs, g=a.gravity, seed=a.seed, calibration=init)
+        diag = diagnose(logs, g=a.gravity, seed=a.seed, calibration=init, sampled=sampled)
     print(f"verdict: {diag.verdict}", file=out)
     for f in diag.findings:
         if not f.significant:
@@ -606,6 +612,10 @@ def cmd_diagnose(a: argparse.Namespace) -> int:
             print(f"    gain: {', '.join(x for x in gain if x)}", file=out)
     for u in diag.untestable:
         print(f"  not testable: {u}", file=out)
+    if diag.baseline.get("bounded_sample"):
+        from .diagnose.sample import note
+
+        print(f"  {note(diag.baseline['bounded_sample'])}", file=out)
     for e in diag.baseline.get("excluded", []):
         from .diagnose.gaps import excluded_text
 
@@ -619,7 +629,7 @@ def cmd_diagnose(a: argparse.Namespace) -> int:
         nis = {"ukf (the model as diagnosed)": {"mean": best["nis_mean"], "windows": 99}}
     elif "error" in ub:
         print(f"  UKF stage: {ub['error']}", file=out)
-    print(f"diagnose: {sum(d.n_imu for d in logs)} IMU samples in {diag.timing.get('total', 0):.1f} s", file=out)
+    print(f"diagnose: {n_imu} IMU samples in {diag.timing.get('total', 0):.1f} s", file=out)
     health = assess(diag.calibration, nis=nis, events=[], mag_raw=_mag_raw(logs), raw=_raw(logs))
     if a.json:
         from .files import OutputError, write_json

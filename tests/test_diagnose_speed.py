@@ -38,7 +38,8 @@ def test_one_blas_thread_limits_inside_and_restores_outside(monkeypatch) -> None
 
 def test_diagnose_keeps_its_signature() -> None:
     # the decorator must not hide diagnose's keyword arguments from callers and introspection
-    assert list(inspect.signature(diagnose).parameters) == ["logs", "g", "seed", "check", "calibration", "ukf"]
+    assert list(inspect.signature(diagnose).parameters) == ["logs", "g", "seed", "check", "calibration", "ukf",
+                                                          "sampled"]
 
 
 def test_solve_on_one_thread_equals_threaded_solve_to_1e10(monkeypatch) -> None:

@@ -215,11 +215,19 @@ def analyse(designs: list[Design], cal: Calibration, only: list[str] | None = No
     for c in cands:
         if c.k_per_session:
             names = []
+            # one block per session, or per group of sessions that share a walk (the windows of one sampled log,
+            # Design.drift_group), named after the group's first session
+            groups: dict[object, list[int]] = {}
             for i, d in enumerate(designs):
-                X = c.columns(d, cal)
-                full = np.zeros((y.size, X.shape[1]))
-                full[offs[i] : offs[i + 1]] = X
-                nm = f"{c.key}#{i}"
+                groups.setdefault(("own", i) if d.drift_group is None else d.drift_group, []).append(i)
+            for idx in groups.values():
+                full = np.zeros(0)
+                for i in idx:
+                    X = c.columns(designs[i], cal)
+                    if not full.size:
+                        full = np.zeros((y.size, X.shape[1]))
+                    full[offs[i] : offs[i + 1]] = X
+                nm = f"{c.key}#{idx[0]}"
                 cols[nm] = full
                 names.append(nm)
             blocks[c.key] = names
@@ -315,8 +323,9 @@ def _finish(designs: list[Design], cal: Calibration, cands: list[Candidate], blo
     q_lr: dict[str, Array] = {}
     for c in cands:
         if c.effect == "bias_drift":
-            Ks = [drift_knots(d).size - 1 for d in designs]
-            dts = [float(np.diff(drift_knots(d))[0]) for d in designs]
+            first = [designs[int(b.rsplit("#", 1)[1])] for b in blocks[c.key]]  # each block's first session
+            Ks = [drift_knots(d).size - 1 for d in first]
+            dts = [float(np.diff(drift_knots(d))[0]) for d in first]
             with one_blas_thread():
                 q[c.key], q_lr[c.key], pri = _fit_density(P, ["nuisance"], blocks[c.key], Ks, dts,
                                                           Q_GRID[c.sensor])

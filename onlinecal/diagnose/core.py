@@ -51,6 +51,8 @@ from .motion import prepare
 from .regressors import SUBCHANNELS, Design
 from .resim import resimulate
 from .result import Diagnosis, Finding
+from .sample import bounded_sample
+from .sample import note as sample_note
 from .stats import channel_stats, rest_stats
 
 Array = NDArray[np.float64]
@@ -71,6 +73,24 @@ def _designs(logs: list[ImuData], cal: Calibration, segs: list[Any], g: float,
             continue
         out.append(Design(s, g, i, None if exclude is None else exclude[i]))
     return out
+
+
+def _share_walks(designs: list[Design], logs: list[ImuData], sampled: dict[str, Any] | None) -> None:
+    """The windows of one sampled log (:mod:`.sample`) share one drift walk over the log's whole span: a bias
+    that wandered between two windows is the same walk's value there, not an offset the model lacks (with a
+    walk per window, 1-hour flight with a gyro walk of 1e-4 rad/s/√s: density 5.9e-4 and a spurious
+    temperature_bias, the windows' offsets following the rising temperature)."""
+    if sampled is None:
+        return
+    for d in designs:
+        t0, t1 = float(d.s.t[0]), float(d.s.t[-1])
+        src = logs[d.sid].source
+        for j, p in enumerate(sampled["logs"]):
+            w = p["windows_s"]
+            # a window of that log (a re-stamped clock may differ from the stamps by a fraction of a second)
+            if p["source"] == src and w[0][0] - 1.0 <= t0 and t1 <= w[-1][1] + 1.0:
+                d.drift_group, d.drift_span = ("sample", j), (float(w[0][0]), float(w[-1][1]))
+                break
 
 
 def _threshold(k: float, n: int, null: float, spread: float = 0.0) -> float:
@@ -221,13 +241,17 @@ def _baseline(logs: list[ImuData], g: float, calibration: Calibration | None) ->
 
 @one_blas_thread()  # small solves throughout: BLAS threads only spin (analysis.one_blas_thread)
 def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = True,
-             calibration: Calibration | None = None, ukf: bool = True) -> Diagnosis:
+             calibration: Calibration | None = None, ukf: bool = True,
+             sampled: dict[str, Any] | None = None) -> Diagnosis:
     """Model-discrepancy discovery over the logs of one sensor unit (module docstring).
 
     ``seed`` seeds the re-simulation's noise; ``check`` runs stage 5 (the extended simulator against the
     measured statistics); ``calibration``: use this baseline (e.g. the unit's campaign calibration, for a
     session too short or too still to calibrate on its own) instead of running the batch on ``logs``;
-    ``ukf``: run stage 6 (the UKF from the baseline, and with the extension; NIS before/after).
+    ``ukf``: run stage 6 (the UKF from the baseline, and with the extension; NIS before/after). Logs over
+    :data:`.sample.BUDGET` IMU samples are diagnosed on a bounded sample of themselves (:mod:`.sample`);
+    ``sampled``: the description of such a sample the caller already took (the CLI, so that it need not hold
+    the whole log), stated in the result as if taken here.
     Raises FitError when the batch cannot calibrate anything.
     """
     t_start = time.perf_counter()
@@ -236,6 +260,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     if not logs:
         raise FitError("no IMU samples in the logs")
     sources = list(dict.fromkeys(d.source for d in logs))
+    # a log over the budget is diagnosed on evenly spaced windows of itself (memory constant in its length)
+    logs, taken = bounded_sample(logs)
+    sampled = taken or sampled
     # holes in the time line (a NaN burst the reader dropped, a logging gap) cut a log into pieces
     logs, excluded = split_at_gaps(logs)
     if not logs:
@@ -288,6 +315,7 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     # -- 2. residual channels, measured and re-simulated -------------------------------------------
     t0 = time.perf_counter()
     designs = _designs(logs, cal, res.segmentations, g, exclude)
+    _share_walks(designs, logs, sampled)
     if not designs:
         raise FitError("no log long enough to diagnose (≥ 50 IMU samples)")
     cov = coverage(designs)
@@ -300,7 +328,9 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
     for dz, sl in zip(designs, sim_logs, strict=True):
         ss = prepare(sl, cal, dz.s.rests)
         ss.restamped = dz.s.restamped
-        null_designs.append(Design(ss, g, dz.sid))
+        nd = Design(ss, g, dz.sid)
+        nd.drift_group, nd.drift_span = dz.drift_group, dz.drift_span
+        null_designs.append(nd)
     null = analyse(null_designs, cal, only=[c.key for c in an.cands])
     timing["null"] = time.perf_counter() - t0
     # -- 2c. is the baseline adequate? (invariants it does not meet are named and left out) ---------------
@@ -417,7 +447,13 @@ def diagnose(logs: list[ImuData], g: float = G0, seed: int = 0, check: bool = Tr
         "earth_rate": [{"rad_s": [float(x) for x in v], "norm": float(np.linalg.norm(v)), "bound": OMEGA_EARTH,
                         "frame": "the session's first body frame"} for v in an.earth_rate],
         "excluded": excluded,
+        "bounded_sample": sampled,
     }
+    if sampled is not None:
+        baseline["notes"].insert(0, sample_note(sampled))
+        for f in findings:
+            f.evidence += (f" (On a bounded sample of the log: {sampled['n_kept']} of {sampled['n_imu']} IMU "
+                           "samples in evenly spaced windows, baseline.bounded_sample.)")
     untestable += _untestable(designs, an)
     diag = Diagnosis(baseline, findings, ext_cal, untestable, {}, timing, sources)
     diag._parts = (an, null, chosen, model, full_an, full_null)  # type: ignore[attr-defined]

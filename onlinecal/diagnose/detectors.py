@@ -75,10 +75,11 @@ def temp_cols(sensor: str) -> Callable[[Design, Calibration], Array]:
 
 
 def drift_knots(d: Design, spacing: float = DRIFT_KNOT_S, max_knots: int = DRIFT_MAX_KNOTS) -> Array:
-    """Knot times (K,) of the drift walk over the log: ``spacing`` s apart, at most ``max_knots``."""
-    T = d.s.t[-1] - d.s.t[0]
-    nk = min(max_knots, max(2, int(np.ceil(T / spacing)) + 1))
-    return np.linspace(d.s.t[0], d.s.t[-1], nk)
+    """Knot times (K,) of the drift walk over the log: ``spacing`` s apart, at most ``max_knots``. A window of a
+    sampled log (``d.drift_span`` set) has the knots of the whole log's span: one walk through all its windows."""
+    t0, t1 = d.drift_span if d.drift_span is not None else (float(d.s.t[0]), float(d.s.t[-1]))
+    nk = min(max_knots, max(2, int(np.ceil((t1 - t0) / spacing)) + 1))
+    return np.linspace(t0, t1, nk)
 
 
 def hats(t: Array, knots: Array) -> Array:

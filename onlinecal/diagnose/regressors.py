@@ -97,6 +97,10 @@ class Design:
         self.s = s
         self.g = g
         self.sid = sid
+        # windows of one long log (diagnose/sample.py) share one drift walk over the log's time span: the group
+        # key and that span (s); None: the walk is this session's own
+        self.drift_group: object = None
+        self.drift_span: tuple[float, float] | None = None
         self.b = _blocks(s)
         self.chunks = _rest_chunks(s)
         b = self.b

@@ -288,3 +288,57 @@ def test_disturbance_gate_on_floats_judges_as_numpy() -> None:
             assert why == _judge_numpy(x, sig, m_raw, a_raw, 9.81, veh), trial
             seen["none" if why is None else why.split()[0].replace("field", "norm")] += 1
     assert min(seen.values()) >= 50, seen
+
+
+# ---------------------------------------------------------------- Earth-rate noise and motion coverage
+def test_earth_rate_noise_on_python_floats_equals_the_numpy_form_bit_for_bit() -> None:
+    """:func:`.vehicle.earth_rate_noise` element by element against the numpy form it replaces (the bias
+    topped up with np.maximum, the attitude's constant added), with the gyro's mean scale as np.mean forms
+    it: the same bits, NaN variances included; both branches of the top-up occur."""
+    from onlinecal.ukf.layout import ATT, index
+    from onlinecal.ukf.vehicle import OMEGA_E_HORIZONTAL_RMS, earth_rate_noise
+
+    rng = np.random.default_rng(5)
+    b = index("gyro", "bias")
+    raised = kept = 0
+    for trial in range(3000):
+        n = 40
+        P = np.diag(10 ** rng.uniform(-14, -6, n))
+        if trial % 50 == 0:
+            P[b.start + 1, b.start + 1] = np.nan
+        q = rng.uniform(0, 1e-9, n)
+        x = rng.normal(1, 0.05, n)
+        sx, sy, sz = x[3:6].tolist()
+        s_gyr = (sx + sy + sz) / 3.0
+        assert s_gyr == float(np.mean(x[3:6]))
+        sigma, tau, dt = 4.2e-5, rng.uniform(1, 60), rng.uniform(0.01, 0.2)
+        ref = q.copy()
+        ref[b] += np.maximum(0.0, (sigma / s_gyr) ** 2 - np.diag(P)[b])
+        ref[ATT] += OMEGA_E_HORIZONTAL_RMS**2 * tau * dt
+        new = earth_rate_noise(q.copy(), P, b, s_gyr, sigma, tau, dt)
+        assert np.array_equal(new, ref, equal_nan=True), trial
+        raised += int(((sigma / s_gyr) ** 2 > np.diag(P)[b]).sum())
+        kept += int(((sigma / s_gyr) ** 2 <= np.diag(P)[b]).sum())
+    assert raised > 1000 and kept > 1000
+
+
+def test_motion_coverage_on_python_floats_equals_the_numpy_form_bit_for_bit() -> None:
+    """:meth:`.vehicle.MotionCoverage.add_motion` against the numpy form it replaces (np.abs, np.maximum in
+    place, angle += |ω| dt) over 2000 blocks with NaN rates now and then: the same maxima and angles."""
+    from onlinecal.ukf.vehicle import MotionCoverage
+
+    rng = np.random.default_rng(6)
+    cov = MotionCoverage()
+    mx, ang, fl = np.zeros(3), np.zeros(3), 0.0
+    for k in range(2000):
+        w = rng.normal(0, 10 ** rng.uniform(-3, 1), 3)
+        if k % 397 == 11:
+            w[k % 3] = np.nan
+        dt, air = float(rng.uniform(0.05, 0.15)), bool(k % 3)
+        cov.add_motion(w, dt, air)
+        r = np.abs(w)
+        np.maximum(mx, r, out=mx)
+        ang += r * dt
+        fl += dt if air else 0.0
+        assert np.array_equal(cov.max_rate, mx, equal_nan=True) and np.array_equal(cov.angle, ang, equal_nan=True)
+        assert cov.flight_s == fl

@@ -15,7 +15,7 @@ from onlinecal.specs import FIELD_GAUSS
 from onlinecal.ukf import magdisturb as md
 from onlinecal.ukf.attitude_init import MagCollector, fit_mag_cold
 from onlinecal.ukf.config import UKFConfig
-from onlinecal.ukf.detectors import RailDetector, _runs
+from onlinecal.ukf.detectors import RailDetector, _runs, block_runs
 from onlinecal.ukf.layout import DIP, N_STATE, SENSOR_SLICE
 from onlinecal.ukf.noise import NoiseModel, mag_unit_of
 
@@ -199,17 +199,19 @@ def _check_per_axis(det: RailDetector, w, a, w_absmax, a_absmax, rail_min, rail_
 
 @pytest.mark.parametrize("L", [1, 2, 20, 39, 40, 60])
 def test_rail_detector_short_blocks_equal_the_per_axis_runs(L: int) -> None:
-    """Blocks of L samples (L < rail_run = 40: one numpy pass; L ≥ 40: the per-axis rule itself) with
+    """Blocks of L samples (L < rail_run = 40: one numpy pass, or the runs precomputed over the whole feed by
+    block_runs; L ≥ 40: the per-axis rule itself) with
     readings from a coarse set that holds runs across blocks, at and below the rail magnitude, NaN now
     and then: the same flags, events, learnt rails and open runs after every block; rails are learnt."""
     rng = np.random.default_rng(L)
     rail_min, rail_run = {"gyro": 1.0, "accel": 14.7}, 40
-    new, ref = RailDetector(), RailDetector()
+    new, ref, pre = RailDetector(), RailDetector(), RailDetector()
     levels = {"gyro": np.array([-4.3, -1.5, 0.2, 0.9, 2.0, 4.3]), "accel": np.array([-19.6, -9.8, 0.1, 9.8, 19.6])}
     learnt = 0
     last = {s: rng.choice(levels[s], size=3) for s in levels}
     p_change = min(0.4, 1.5 * L / rail_run)  # per block and axis: runs of rail_run samples happen
-    for blk in range(400):
+    feed = []
+    for _ in range(400):
         vs = {}
         for s in ("gyro", "accel"):
             v = np.repeat(last[s][None, :], L, axis=0)
@@ -220,16 +222,23 @@ def test_rail_detector_short_blocks_equal_the_per_axis_runs(L: int) -> None:
                     v[int(rng.integers(0, L)), k] = math.nan
             last[s] = np.where(np.isnan(v[-1]), rng.choice(levels[s], size=3), v[-1])
             vs[s] = v
-        w, a = vs["gyro"], vs["accel"]
+        feed.append((vs["gyro"], vs["accel"]))
+    # the runs of every block at once, over the whole feed (as block_stats forms them)
+    lo = np.arange(400, dtype=np.intp) * L
+    runs = [block_runs(np.concatenate([f[k] for f in feed]), lo, lo + L) for k in (0, 1)]
+    for blk, (w, a) in enumerate(feed):
         wm, am = np.nan_to_num(np.abs(w)).max(axis=0), np.nan_to_num(np.abs(a)).max(axis=0)
         o_new, e_new = new.check(w, a, wm, am, rail_min, rail_run)
+        o_pre, e_pre = pre.check(w, a, wm, am, rail_min, rail_run, (runs[0][blk], runs[1][blk]))
         o_ref, e_ref = _check_per_axis(ref, w, a, wm, am, rail_min, rail_run)
         assert o_new == o_ref and [e[0] for e in e_new] == e_ref, blk
+        assert o_pre == o_ref and [e[0] for e in e_pre] == e_ref, blk
         # (repr: a NaN reading in an open run compares unequal to itself)
-        assert repr(new.rail) == repr(ref.rail) and repr(new.run) == repr(ref.run) and new.clip_on == ref.clip_on, blk
+        for d in (new, pre):
+            assert repr(d.rail) == repr(ref.rail) and repr(d.run) == repr(ref.run) and d.clip_on == ref.clip_on, blk
         if blk % 97 == 50:  # a learnt rail forgotten, so that learning happens again
-            new.rail.pop("gyro", None)
-            ref.rail.pop("gyro", None)
+            for d in (new, pre, ref):
+                d.rail.pop("gyro", None)
         learnt += bool(new.rail)
     assert learnt > 0
 
@@ -288,3 +297,112 @@ def test_disturbance_gate_on_floats_judges_as_numpy() -> None:
             assert why == _judge_numpy(x, sig, m_raw, a_raw, 9.81, veh), trial
             seen["none" if why is None else why.split()[0].replace("field", "norm")] += 1
     assert min(seen.values()) >= 50, seen
+
+
+# ---------------------------------------------------------------- Earth-rate noise and motion coverage
+def test_earth_rate_noise_on_python_floats_equals_the_numpy_form_bit_for_bit() -> None:
+    """:func:`.vehicle.earth_rate_noise` element by element against the numpy form it replaces (the bias
+    topped up with np.maximum, the attitude's constant added), with the gyro's mean scale as np.mean forms
+    it: the same bits, NaN variances included; both branches of the top-up occur."""
+    from onlinecal.ukf.layout import ATT, index
+    from onlinecal.ukf.vehicle import OMEGA_E_HORIZONTAL_RMS, earth_rate_noise
+
+    rng = np.random.default_rng(5)
+    b = index("gyro", "bias")
+    raised = kept = 0
+    for trial in range(3000):
+        n = 40
+        P = np.diag(10 ** rng.uniform(-14, -6, n))
+        if trial % 50 == 0:
+            P[b.start + 1, b.start + 1] = np.nan
+        q = rng.uniform(0, 1e-9, n)
+        x = rng.normal(1, 0.05, n)
+        sx, sy, sz = x[3:6].tolist()
+        s_gyr = (sx + sy + sz) / 3.0
+        assert s_gyr == float(np.mean(x[3:6]))
+        sigma, tau, dt = 4.2e-5, rng.uniform(1, 60), rng.uniform(0.01, 0.2)
+        ref = q.copy()
+        ref[b] += np.maximum(0.0, (sigma / s_gyr) ** 2 - np.diag(P)[b])
+        ref[ATT] += OMEGA_E_HORIZONTAL_RMS**2 * tau * dt
+        new = earth_rate_noise(q.copy(), P, b, s_gyr, sigma, tau, dt)
+        assert np.array_equal(new, ref, equal_nan=True), trial
+        raised += int(((sigma / s_gyr) ** 2 > np.diag(P)[b]).sum())
+        kept += int(((sigma / s_gyr) ** 2 <= np.diag(P)[b]).sum())
+    assert raised > 1000 and kept > 1000
+
+
+def test_motion_coverage_on_python_floats_equals_the_numpy_form_bit_for_bit() -> None:
+    """:meth:`.vehicle.MotionCoverage.add_motion` against the numpy form it replaces (np.abs, np.maximum in
+    place, angle += |ω| dt) over 2000 blocks with NaN rates now and then: the same maxima and angles."""
+    from onlinecal.ukf.vehicle import MotionCoverage
+
+    rng = np.random.default_rng(6)
+    cov = MotionCoverage()
+    mx, ang, fl = np.zeros(3), np.zeros(3), 0.0
+    for k in range(2000):
+        w = rng.normal(0, 10 ** rng.uniform(-3, 1), 3)
+        if k % 397 == 11:
+            w[k % 3] = np.nan
+        dt, air = float(rng.uniform(0.05, 0.15)), bool(k % 3)
+        cov.add_motion(w, dt, air)
+        r = np.abs(w)
+        np.maximum(mx, r, out=mx)
+        ang += r * dt
+        fl += dt if air else 0.0
+        assert np.array_equal(cov.max_rate, mx, equal_nan=True) and np.array_equal(cov.angle, ang, equal_nan=True)
+        assert cov.flight_s == fl
+
+
+def _rest_update_numpy(det, B, b, n, k, rest_blocks):
+    """RestDetector.update as it was: max over the axes with numpy."""
+    L = int(B.hi[b] - B.lo[b])
+    n_m = int(B.mhi[b] - B.mlo[b])
+    gm, am = B.w_mean[b], B.a_mean[b]
+    mm = B.m_mean[b] if n_m else None
+    sg, sa = n["gyro"], n["accel"]
+    still = L >= 3 and float(B.w_std[b].max()) < k * sg and float(B.a_std[b].max()) < k * sa
+    prev = det.prev_means
+    if prev is not None and still:
+        d = math.sqrt(2.0 / L)
+        still = (float(np.abs(gm - prev[0]).max()) < 2 * k * sg * d
+                 and float(np.abs(am - prev[1]).max()) < 2 * k * sa * d)
+        if still and mm is not None and prev[2] is not None:
+            still = float(np.abs(mm - prev[2]).max()) < 2 * k * n["mag"] * math.sqrt(2.0 / n_m)
+    det.prev_means = (gm, am, mm if mm is not None else (prev[2] if prev is not None else None))
+    det.count = det.count + 1 if still else 0
+    det.still = still
+    return det.count >= rest_blocks
+
+
+def test_rest_detector_on_python_floats_makes_the_numpy_decisions() -> None:
+    """RestDetector.update with its "max over the axes" on Python floats against the numpy form: the same
+    verdicts, counts and previous means over 3000 blocks of still and moving readings near the bounds,
+    blocks without mag, short blocks and NaN now and then; rests are found and ended."""
+    from types import SimpleNamespace
+
+    from onlinecal.ukf.detectors import RestDetector
+
+    rng = np.random.default_rng(8)
+    nb = 3000
+    lo = np.arange(nb) * 20
+    hi = lo + np.where(rng.random(nb) < 0.05, 2, 20)
+    mcnt = np.where(rng.random(nb) < 0.2, 0, 5)
+    mlo = np.concatenate([[0], np.cumsum(mcnt)[:-1]])
+    level = np.repeat(rng.normal(0, 1, (nb // 50, 1, 3)), 50, axis=0).reshape(nb, 3)
+    B = SimpleNamespace(lo=lo, hi=hi, mlo=mlo, mhi=mlo + mcnt,
+                        w_mean=level * 0.01 + rng.normal(0, 2e-3, (nb, 3)),
+                        a_mean=level + rng.normal(0, 0.012, (nb, 3)),
+                        m_mean=level * 0.1 + rng.normal(0, 1.5e-3, (nb, 3)), w_std=rng.uniform(0, 0.0125, (nb, 3)),
+                        a_std=rng.uniform(0, 0.083, (nb, 3)))
+    for arr in (B.w_mean, B.a_std, B.m_mean):
+        arr[rng.random(nb) < 0.01, 1] = np.nan
+    n = {"gyro": 3e-3, "accel": 0.02, "mag": 3e-3}
+    new, ref = RestDetector(), RestDetector()
+    rests = 0
+    for b in range(nb):
+        r_new, r_ref = new.update(B, b, n, 4.0, 3), _rest_update_numpy(ref, B, b, n, 4.0, 3)
+        assert (r_new, new.count, new.still) == (r_ref, ref.count, ref.still), b
+        assert all((x is None and y is None) or np.array_equal(x, y, equal_nan=True)
+                   for x, y in zip(new.prev_means, ref.prev_means, strict=True))
+        rests += r_new
+    assert 100 < rests < nb - 100, rests

@@ -18,8 +18,10 @@ from numpy.typing import NDArray
 
 from ..batch.ellipsoid import fit_norm_lm
 from ..model import decompose
+from . import kernels
 from .config import UKFConfig
 from .geometry import rodrigues1, triad, yaw_rotation
+from .kernels_magfit import fit_refused
 from .layout import field_world
 
 Array = NDArray[np.float64]
@@ -162,7 +164,14 @@ def fit_mag_cold(x: Array, c: UKFConfig) -> MagFit | None:
     Sphere: o_mag = centre, s_mag = 1/r (all axes), angles 0, σ ``c.mag_fit_sigma``. Ellipsoid (geometric
     fit, :func:`ellipsoid_gn`): the soft iron starts near its value, σ ``c.mag_ellipsoid_sigma``, so the
     first mag updates stay in the UKF's near-linear range.
+
+    On the numba backend a compiled screen (:func:`.kernels_magfit.fit_refused`) first returns None where
+    one of the three tests below is certain to fail (by over 1 %): the same decisions, ~20× cheaper on a
+    flight that tries the fit every second of its log (issue 15).
     """
+    if kernels.backend() == "numba" and fit_refused(x, c.mag_fit_max_centre_sigma, c.mag_fit_min_spread,
+                                                    c.mag_fit_min_cover):
+        return None
     m0 = x.mean(axis=0)
     xc = x - m0  # centred for conditioning
     A = np.column_stack([2 * xc, np.ones(x.shape[0])])

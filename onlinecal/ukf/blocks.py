@@ -21,6 +21,7 @@ from .detectors import HoldTracker as HoldTracker  # re-exported (older imports)
 from .detectors import Lattice as Lattice
 from .detectors import RailDetector as RailDetector
 from .detectors import RestDetector as RestDetector
+from .detectors import block_runs
 from .detectors import value_lattice as value_lattice
 
 Array = NDArray[np.float64]
@@ -86,7 +87,8 @@ class Blocks:
     samples [mlo[b], mhi[b]) of the buffers; w_ext (N + 1, 3) the raw rates with the last one filtered
     before them, dt (N,) the length of the interval ending at each IMU sample; per block the means and
     spreads (n_b, 3), the third-difference noise variances (n_b,), the jerk term Σ|Δ²ω·Δt/4|² and its count, the largest
-    |reading| per axis; per mag sample its interpolation index into [t_prev, t] and fraction."""
+    |reading| per axis; per mag sample its interpolation index into [t_prev, t] and fraction; per block
+    the lengths of the first and last runs of identical gyro and accel readings (the rail detector's)."""
 
     lo: Index
     hi: Index
@@ -107,6 +109,8 @@ class Blocks:
     a_absmax: Array
     m_j: Index
     m_frac: Array
+    w_runs: Index  # (n_b, 2, 3) the first and last runs of identical readings (.detectors.block_runs)
+    a_runs: Index
 
 
 
@@ -176,7 +180,8 @@ def block_stats(t: Array, w: Array, a: Array, tm: Array, m: Array, bounds: list[
     frac = np.clip(np.divide(mt - t_ext[jm - 1], den, out=np.ones_like(den), where=den > 0), 0.0, 1.0)
     return Blocks(lo, hi, mlo, mhi, w_ext, dt, w_mean, w_std, a_mean, a_std, m_mean, m_std, var3,
                   jerk, 3 * np.maximum(cnt - 1, 0), np.maximum.reduceat(np.abs(ww), lo, axis=0),
-                  np.maximum.reduceat(np.abs(aa), lo, axis=0), jm - lo[mseg], frac)
+                  np.maximum.reduceat(np.abs(aa), lo, axis=0), jm - lo[mseg], frac, block_runs(ww, lo, hi),
+                  block_runs(aa, lo, hi))
 
 
 @dataclass

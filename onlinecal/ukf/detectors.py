@@ -81,6 +81,48 @@ def _short_block_runs(v: Array, carry: list[tuple[float, int]] | None, rail_run:
     return new_carry, axes
 
 
+def block_runs(v: Array, lo: NDArray[np.intp], hi: NDArray[np.intp]) -> NDArray[np.intp]:
+    """Per block [lo[b], hi[b]) of v (N, 3) and axis, where its first and last runs of identical values end
+    (the rows of :func:`_short_block_runs`, for all blocks of a feed at once; issue 15): (n_b, 2, 3) —
+    [b, 0, k] the length of the first run (L where the block holds one value), [b, 1, k] that of the last
+    (−1 where the block holds one value). NaN ≠ NaN, as in :func:`_runs`."""
+    nb = lo.shape[0]
+    out = np.empty((nb, 2, 3), np.intp)
+    L = hi - lo
+    if nb == 0:
+        return out
+    s0, end = int(lo[0]), int(hi[-1])
+    ch = v[s0 + 1 : end] != v[s0 : end - 1]  # ch[p − s0]: a new run starts at sample p + 1
+    for k in range(3):
+        P = np.flatnonzero(ch[:, k]) + s0
+        i1 = np.searchsorted(P, lo, side="left")  # the first change at or after lo
+        f_ok = i1 < P.size
+        f_ok[f_ok] = P[i1[f_ok]] <= hi[f_ok] - 2
+        out[:, 0, k] = np.where(f_ok, P[np.minimum(i1, max(P.size - 1, 0))] - lo + 1 if P.size else 0, L)
+        i2 = np.searchsorted(P, hi - 1, side="left") - 1  # the last change at or before hi − 2
+        l_ok = i2 >= 0
+        l_ok[l_ok] = P[i2[l_ok]] >= lo[l_ok]
+        out[:, 1, k] = np.where(l_ok, hi - 1 - P[np.maximum(i2, 0)] if P.size else 0, -1)
+    return out
+
+
+def _short_runs_given(runs: NDArray[np.intp], v0: list[float], v1: list[float], L: int,
+                      carry: list[tuple[float, int]] | None, rail_run: int, rail_min: float
+                      ) -> tuple[list[tuple[float, int]], list[tuple[int, float]]]:
+    """:func:`_short_block_runs` from the block's precomputed :func:`block_runs` row ``runs`` (2, 3), its
+    first and last readings v0, v1 (3 Python floats each) and its length L: the same carry and axes."""
+    first, last = runs[0].tolist(), runs[1].tolist()
+    new_carry, axes = [], []
+    for k in range(3):
+        f = first[k]
+        if carry is not None and v0[k] == carry[k][0]:
+            f += carry[k][1]
+        new_carry.append((float(v1[k]), last[k] if last[k] >= 0 else f))
+        if f >= rail_run and abs(float(v0[k])) >= rail_min:
+            axes.append((k, abs(float(v0[k]))))
+    return new_carry, axes
+
+
 @dataclass
 class RailDetector:
     """The ADC rail of gyro and accel, learnt from the data. A rail is ``rail_run`` identical readings in a
@@ -93,20 +135,29 @@ class RailDetector:
     clip_on: dict[str, bool] = field(default_factory=lambda: {"gyro": False, "accel": False, "mag": False})
 
     def check(self, w: Array, a: Array, w_absmax: Array, a_absmax: Array, rail_min: dict[str, float],
-              rail_run: int) -> tuple[dict[str, bool], list[tuple[str, str]]]:
+              rail_run: int, runs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None
+              ) -> tuple[dict[str, bool], list[tuple[str, str]]]:
         """Which sensors read at their rail in this block (w, a (L, 3) raw; ``*_absmax`` (3,) the block's
-        largest |reading| per axis), and the events (kind, detail) at the start of a clipped stretch."""
+        largest |reading| per axis), and the events (kind, detail) at the start of a clipped stretch.
+        ``runs``: the block's :func:`block_runs` rows (2, 3) for w and a, computed over the feed (the same
+        decisions as from w and a; issue 15)."""
         out = {"mag": False}
         events: list[tuple[str, str]] = []
-        for s, v, amax in (("gyro", w, w_absmax), ("accel", a, a_absmax)):
+        for s, v, amax, rr in (("gyro", w, w_absmax, None if runs is None else runs[0]),
+                               ("accel", a, a_absmax, None if runs is None else runs[1])):
             rail = self.rail.get(s)
-            hit = rail is not None and bool(np.any(amax >= np.asarray(rail) * (1 - 1e-9)))
-            if float(amax.max()) < rail_min[s]:
+            am = amax.tolist()  # Python floats: the same comparisons (a NaN fails each, as np.any/np.max's)
+            hit = rail is not None and any(x >= r * (1 - 1e-9) for x, r in zip(am, rail, strict=True))
+            if _all_below(am, rail_min[s]):
                 self.run.pop(s, None)
             else:
                 carry = self.run.get(s)
                 if 1 < v.shape[0] < rail_run:  # the usual block: only the run continuing the carry can be a rail
-                    self.run[s], axes = _short_block_runs(v, carry, rail_run, rail_min[s])
+                    if rr is not None:
+                        self.run[s], axes = _short_runs_given(rr, v[0].tolist(), v[-1].tolist(), v.shape[0], carry,
+                                                              rail_run, rail_min[s])
+                    else:
+                        self.run[s], axes = _short_block_runs(v, carry, rail_run, rail_min[s])
                     for k, val in axes:
                         r = self.rail.setdefault(s, [math.inf] * 3)
                         r[k] = min(r[k], val)
@@ -135,6 +186,16 @@ class RailDetector:
         return out, events
 
 
+def _all_below(v: list[float], bound: float) -> bool:
+    """float(np.max(v)) < bound for a few Python floats v (False where one is NaN, as np.max's NaN)."""
+    return all(x < bound for x in v)
+
+
+def _all_diff_below(u: list[float], v: list[float], bound: float) -> bool:
+    """float(np.abs(u − v).max()) < bound for two lists of Python floats (False where a difference is NaN)."""
+    return all(abs(x - y) < bound for x, y in zip(u, v, strict=True))
+
+
 @dataclass
 class RestDetector:
     """Rest from raw data: gyro, accel and mag still (within their noise) for ``rest_blocks`` blocks.
@@ -160,14 +221,16 @@ class RestDetector:
         gm, am = B.w_mean[b], B.a_mean[b]
         mm = B.m_mean[b] if n_m else None
         sg, sa = n["gyro"], n["accel"]
-        still = L >= 3 and float(B.w_std[b].max()) < k * sg and float(B.a_std[b].max()) < k * sa
+        # on Python floats (issue 15): "max over the axes < bound" as "every axis < bound" (a NaN fails both),
+        # the differences the same subtractions: the same decisions at a third of numpy's per-call cost
+        still = L >= 3 and _all_below(B.w_std[b].tolist(), k * sg) and _all_below(B.a_std[b].tolist(), k * sa)
         prev = self.prev_means
         if prev is not None and still:
             d = math.sqrt(2.0 / L)
-            still = (float(np.abs(gm - prev[0]).max()) < 2 * k * sg * d
-                     and float(np.abs(am - prev[1]).max()) < 2 * k * sa * d)
+            still = (_all_diff_below(gm.tolist(), prev[0].tolist(), 2 * k * sg * d)
+                     and _all_diff_below(am.tolist(), prev[1].tolist(), 2 * k * sa * d))
             if still and mm is not None and prev[2] is not None:
-                still = float(np.abs(mm - prev[2]).max()) < 2 * k * n["mag"] * math.sqrt(2.0 / n_m)
+                still = _all_diff_below(mm.tolist(), prev[2].tolist(), 2 * k * n["mag"] * math.sqrt(2.0 / n_m))
         self.prev_means = (gm, am, mm if mm is not None else (prev[2] if prev is not None else None))
         self.count = self.count + 1 if still else 0
         self.still = still

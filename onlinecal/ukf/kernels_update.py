@@ -32,11 +32,25 @@ def cholesky_kernel(A: Array) -> tuple[Array, bool]:
         ljj = math.sqrt(d)
         L[j, j] = ljj
         inv = 1.0 / ljj
-        for i in range(j + 1, n):
+        # four rows at once (issue 15): four independent subtraction chains, each in its own order (k
+        # ascending, as one row alone), so the same bits; one chain alone waits on each subtraction
+        i = j + 1
+        while i + 3 < n:
+            a0, a1, a2, a3 = A[i, j], A[i + 1, j], A[i + 2, j], A[i + 3, j]
+            for k in range(j):
+                ljk = L[j, k]
+                a0 -= L[i, k] * ljk
+                a1 -= L[i + 1, k] * ljk
+                a2 -= L[i + 2, k] * ljk
+                a3 -= L[i + 3, k] * ljk
+            L[i, j], L[i + 1, j], L[i + 2, j], L[i + 3, j] = a0 * inv, a1 * inv, a2 * inv, a3 * inv
+            i += 4
+        while i < n:
             acc = A[i, j]
             for k in range(j):
                 acc -= L[i, k] * L[j, k]
             L[i, j] = acc * inv
+            i += 1
     return L, True
 
 
@@ -112,10 +126,27 @@ def innovation_kernel(Y: Array, Z: Array, z: Array, Wm: Array, Wc: Array, r_diag
             zi = Z[s, i] - z_pred[i]
             for j in range(i, m):
                 S_zz[i, j] += zi * Zc[s, j]
-        for i in range(n):
-            yi = Y[s, i]
+    # Pxz[i, j] = Σ_s Y[s, i] Zc[s, j], s ascending, two rows i at once (issue 15): each entry's sum in a
+    # register in its own order (the same bits as accumulating it in place over s, the loop this replaces)
+    acc = np.empty((2, m))
+    i = 0
+    while i < n:
+        two = i + 1 < n
+        for j in range(m):
+            acc[0, j] = 0.0
+            acc[1, j] = 0.0
+        for s in range(S):
+            y0 = Y[s, i]
+            y1 = Y[s, i + 1] if two else 0.0
             for j in range(m):
-                Pxz[i, j] += yi * Zc[s, j]
+                zc = Zc[s, j]
+                acc[0, j] += y0 * zc
+                acc[1, j] += y1 * zc
+        for j in range(m):
+            Pxz[i, j] = acc[0, j]
+            if two:
+                Pxz[i + 1, j] = acc[1, j]
+        i += 2
     hph = np.empty(m)
     for i in range(m):
         hph[i] = S_zz[i, i]
@@ -209,12 +240,27 @@ def gain_update_kernel(x_pred: Array, P_pred: Array, Pxz: Array, S_zz: Array, S_
                     KS[i, b] += kia * S_zz[a, b]
     P = np.empty((n, n))
     for i in range(n):
-        for j in range(i, n):
+        # four entries (i, j) at once (issue 15): independent chains, each summed over a in its own order (the
+        # same bits as one at a time)
+        j = i
+        while j + 3 < n:
+            c0, c1, c2, c3 = P_pred[i, j], P_pred[i, j + 1], P_pred[i, j + 2], P_pred[i, j + 3]
+            for a in range(m):
+                kai, pia, ksa = Kt[a, i], Pxz[i, a], KS[i, a]
+                c0 += -kai * Pxz[j, a] - pia * Kt[a, j] + ksa * Kt[a, j]
+                c1 += -kai * Pxz[j + 1, a] - pia * Kt[a, j + 1] + ksa * Kt[a, j + 1]
+                c2 += -kai * Pxz[j + 2, a] - pia * Kt[a, j + 2] + ksa * Kt[a, j + 2]
+                c3 += -kai * Pxz[j + 3, a] - pia * Kt[a, j + 3] + ksa * Kt[a, j + 3]
+            P[i, j], P[i, j + 1], P[i, j + 2], P[i, j + 3] = c0, c1, c2, c3
+            P[j, i], P[j + 1, i], P[j + 2, i], P[j + 3, i] = c0, c1, c2, c3
+            j += 4
+        while j < n:
             acc = P_pred[i, j]
             for a in range(m):
                 acc += -Kt[a, i] * Pxz[j, a] - Pxz[i, a] * Kt[a, j] + KS[i, a] * Kt[a, j]
             P[i, j] = acc
             P[j, i] = acc
+            j += 1
     return x, P, True
 
 

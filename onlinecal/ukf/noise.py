@@ -12,6 +12,7 @@ level; process noise (Q) of a block; the allowance for what the sigma points can
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -70,6 +71,13 @@ def lattice_plan(q: dict[str, Any], sensors: tuple[str, ...], rate: float, mag_u
 
 
 _S0 = SENSOR_SLICE["mag"].start + 3  # the mag's scale in the state
+
+
+@functools.lru_cache(maxsize=64)
+def _density_of(spec: SensorSpec) -> float:
+    """:meth:`NoiseModel._density`, kept per spec (a frozen value: the same float every time). The mag's
+    spec has no density, and its σ at 50 Hz (numpy scalars, ~4 µs) was recomputed every block (issue 15)."""
+    return spec.density if spec.density > 0 else spec.sigma(50.0) / math.sqrt(25.0)
 
 
 def mag_unit_of(x: Array) -> float:
@@ -166,7 +174,7 @@ class NoiseModel:
     @staticmethod
     def _density(spec: SensorSpec) -> float:
         """Noise density of ``spec`` (its white σ at 50 Hz over √25 where none is given)."""
-        return spec.density if spec.density > 0 else spec.sigma(50.0) / math.sqrt(25.0)
+        return _density_of(spec)
 
     @staticmethod
     def process_noise(cal_rw: Array, dt: float, rate: float | None, sigma_gyr: float) -> Array:

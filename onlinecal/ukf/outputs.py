@@ -146,9 +146,10 @@ def missing_motion(obs: dict[str, dict[str, Any]], lay: StateLayout,
 def trace_row(t: float, x: Array, sig: Array, lay: StateLayout, nis_last: dict[str, float]) -> dict[str, float]:
     """One trace row: log time t s, every public estimate and its σ (``name.sigma``), the last NIS."""
     row: dict[str, float] = {"t": t}
+    xl, sl = x.tolist(), sig.tolist()  # Python floats at once: float(x[i]) each, a third of the cost (issue 15)
     for i, nm in lay.public():
-        row[nm] = float(x[i])
-        row[nm + ".sigma"] = float(sig[i])
+        row[nm] = xl[i]
+        row[nm + ".sigma"] = sl[i]
     for s, v in nis_last.items():
         row[f"nis.{s}"] = v
     return row

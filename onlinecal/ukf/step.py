@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from .filter import OnlineCalibrator
 
 Array = NDArray[np.float64]
+_GYR_BIAS, _GYR_SCALE = index("gyro", "bias"), index("gyro", "scale")
 _UNJUDGED: Array = np.empty(0)  # the σ handed to the disturbance gate for a block it does not judge
 
 
@@ -135,8 +136,9 @@ def earth_rate_q(cal: OnlineCalibrator, q: Array, dt_blk: float) -> Array:
     lacks) leaves unknown (:func:`.vehicle.earth_rate_noise`, in place); both motion paths call it (the
     compiled one before its kernel adds the block's own terms: the terms are additive)."""
     if cal._vehicle.active:
-        earth_rate_noise(q, cal.P, index("gyro", "bias"), float(np.mean(cal.x[index("gyro", "scale")])),
-                         cal.config.rest_rate_sigma, cal.config.vehicle_accel_tau, dt_blk)
+        sx, sy, sz = cal.x[_GYR_SCALE].tolist()  # np.mean of three, ((a + b) + c) / 3, on Python floats
+        earth_rate_noise(q, cal.P, _GYR_BIAS, (sx + sy + sz) / 3.0, cal.config.rest_rate_sigma,
+                         cal.config.vehicle_accel_tau, dt_blk)
     return q
 
 

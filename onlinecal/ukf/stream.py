@@ -70,7 +70,7 @@ def filter_block(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, w: Array, a
         cal._apply_lattice(("mag",))
         cal._lat.settle()
     clip, events = cal._rails.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b],
-                                    cal.config.rail_min, cal.config.rail_run)
+                                    cal.config.rail_min, cal.config.rail_run, (B.w_runs[b], B.a_runs[b]))
     for kind, detail in events:
         cal._event(kind, detail, float(tb[-1]))
     if clip["gyro"]:

@@ -90,9 +90,9 @@ def test_vehicle_profiles_physics():
 
 
 def test_vehicle_rate_matches_attitude():
-    from onlinecal.sim.flight import multirotor_trajectory
-
     from scipy.spatial.transform import Rotation
+
+    from onlinecal.sim.flight import multirotor_trajectory
 
     # the attitude is the exact integral of a rate held over each 1-ms step; a gyro sample is the rate at t,
     # i.e. the mean over the step-long window centred on t (between step midpoints, not the next step's)

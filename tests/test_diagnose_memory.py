@@ -4,9 +4,6 @@ spaced windows of itself (onlinecal/diagnose/sample.py); the figures are in docs
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +13,7 @@ from onlinecal.diagnose.sample import BUDGET, MIN_WINDOWS, bounded_sample, windo
 from onlinecal.io import write_log
 from onlinecal.io.base import ImuData
 from onlinecal.sim import simulate
-
-REPO = Path(__file__).resolve().parents[1]
+from tests.peakmem import peak
 
 
 @pytest.mark.parametrize("n,keep,width", [(720_001, 125_000, 24_000), (130_000, 125_000, 24_000),
@@ -68,30 +64,6 @@ def test_windows_keep_their_span_of_mag_and_series_and_the_budget() -> None:
         assert w.gyro.base is None  # a copy: the whole log is not kept alive by a view
 
 
-# VmHWM: the peak of the command's own process (ru_maxrss would carry the parent's peak across fork + exec)
-_CLI = """
-import runpy, sys, time
-c0 = time.process_time()
-sys.argv = ["onlinecal", *sys.argv[1:]]
-try:
-    runpy.run_module("onlinecal", run_name="__main__")
-except SystemExit as e:
-    code = e.code
-hwm = [int(x.split()[1]) for x in open("/proc/self/status") if x.startswith("VmHWM:")][0]
-print("PEAK", hwm, time.process_time() - c0, code, file=sys.stderr)
-"""
-
-
-def _peak(args: list[str]) -> tuple[int, float]:
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    r = subprocess.run([sys.executable, "-c", _CLI, *args], capture_output=True, text=True, env=env)
-    line = [x for x in r.stderr.splitlines() if x.startswith("PEAK ")]
-    assert line, r.stderr[-2000:]
-    kb, cpu, code = line[-1].split()[1:]
-    assert code in ("0", "4", "5"), r.stderr[-2000:]  # a result (healthy, degraded or failed), not an error
-    return int(kb), float(cpu)
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the peak memory from /proc (Linux)")
 def test_an_hour_of_flight_costs_diagnose_no_more_memory(tmp_path: Path) -> None:
@@ -102,7 +74,7 @@ def test_an_hour_of_flight_costs_diagnose_no_more_memory(tmp_path: Path) -> None
         p = tmp_path / f"flight{m}.bin"
         write_log(p, simulate("multirotor", 1, duration=60.0 * m, imu_rate=200.0).data)
         out[m] = tmp_path / f"d{m}.json"
-        got[m] = _peak(["diagnose", str(p), "--json", str(out[m])])
+        got[m] = peak(["diagnose", str(p), "--json", str(out[m])])
     assert got[60][0] <= 1.2 * got[10][0], got
     assert got[60][1] <= 6.0 * got[10][1], got
     d10, d60 = (json.loads(out[m].read_text()) for m in (10, 60))

@@ -7,9 +7,6 @@ start stays within 1.2x of the 10-minute one."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,8 +16,8 @@ from onlinecal.batch import run_batch
 from onlinecal.batch.reduce import MAG_PER_CELL, MagSample, read_reduced
 from onlinecal.io import read_log, write_log
 from onlinecal.sim import simulate
+from tests.peakmem import peak
 
-REPO = Path(__file__).resolve().parents[1]
 _COLS = ("t_imu", "gyro", "acc", "temp", "t_mag", "mag")
 
 
@@ -131,30 +128,6 @@ def test_a_reduced_calibration_campaign_keeps_every_term_within_1_sigma(tmp_path
     assert worst <= 1.0
 
 
-# VmHWM: the peak of the command's own process (ru_maxrss would carry the parent's peak across fork + exec)
-_CLI = """
-import runpy, sys, time
-c0 = time.process_time()
-sys.argv = ["onlinecal", *sys.argv[1:]]
-try:
-    runpy.run_module("onlinecal", run_name="__main__")
-except SystemExit as e:
-    code = e.code
-hwm = [int(x.split()[1]) for x in open("/proc/self/status") if x.startswith("VmHWM:")][0]
-print("PEAK", hwm, time.process_time() - c0, code, file=sys.stderr)
-"""
-
-
-def _peak(args: list[str]) -> tuple[int, float]:
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    r = subprocess.run([sys.executable, "-c", _CLI, *args], capture_output=True, text=True, env=env)
-    line = [x for x in r.stderr.splitlines() if x.startswith("PEAK ")]
-    assert line, r.stderr[-2000:]
-    kb, cpu, code = line[-1].split()[1:]
-    assert code in ("0", "4", "5"), r.stderr[-2000:]  # a result (healthy, degraded or failed), not an error
-    return int(kb), float(cpu)
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the peak memory from /proc (Linux)")
 def test_an_hour_of_flight_costs_the_batch_and_the_default_replay_no_more_memory(tmp_path):
@@ -163,9 +136,9 @@ def test_an_hour_of_flight_costs_the_batch_and_the_default_replay_no_more_memory
     paths = {m: _flight(tmp_path, m) for m in (10, 60)}
     out = str(tmp_path / "out.json")
     # the filter's compiled kernels are built (and cached) once, outside the measurement
-    _peak(["replay", str(paths[10]), "--init", "none", "--json", out])
+    peak(["replay", str(paths[10]), "--init", "none", "--json", out])
     for cmd in (["batch"], ["replay"]):
-        got = {m: _peak([*cmd, str(p), "--json", out]) for m, p in paths.items()}
+        got = {m: peak([*cmd, str(p), "--json", out]) for m, p in paths.items()}
         assert got[60][0] <= 1.2 * got[10][0], (cmd, got)
         if cmd == ["batch"]:
             assert got[60][1] <= 6.0 * got[10][1], (cmd, got)

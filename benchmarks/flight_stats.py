@@ -8,6 +8,8 @@ frame (its gauge, :func:`onlinecal.ukf.gauge.align_gauge`) and report
 
 * coverage: share of the 36 terms within 3σ of the truth, the largest |error|/σ;
 * NEES over the estimated terms (the gauge's held terms excluded), against its 99 % chi-square band;
+  over the determined terms; and with the prior taken out (:func:`onlinecal.testing.nees.data_only_nees`, over
+  the directions the data determined: the simulated unit is not a draw from the filter's prior);
 * divergence events;
 * the gyro bias error 60 s after take-off (from the trace, once a second);
 * the determined terms (final σ < ½ prior σ): how many, and whether each is within 3σ;
@@ -32,12 +34,15 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
+import onlinecal.ukf.start as _ukf_start
 from onlinecal.batch.pipeline import run_batch
 from onlinecal.health import assess
 from onlinecal.model import PARAMS, SENSORS, Calibration, SensorCalibration
 from onlinecal.sim import simulate
 from onlinecal.sim.motion import DEFAULT_LATITUDE_DEG
+from onlinecal.testing.nees import data_only_nees
 from onlinecal.ukf import replay
+from onlinecal.ukf.checkpoint import decode
 from onlinecal.ukf.filter import UKFConfig
 from onlinecal.ukf.gauge import align_gauge
 
@@ -68,6 +73,8 @@ class FlightRun:
     nis_out: bool = False  # some NIS stream's mean outside its band (the health check's figures)
     accel_nis: float = float("nan")  # mean NIS of the accel updates whose R is the sensor noise (rests)
     accel_vehicle_nis: float = float("nan")  # vehicle-disturbed accel updates, NIS·k against σ_v²
+    data_nees: float = float("nan")  # the prior taken out (onlinecal.testing.nees): over the determined directions
+    data_dof: int = 0
 
     @property
     def coverage(self) -> float:
@@ -137,9 +144,21 @@ def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10
     init = None if start == "cold" else bench_calibration(truth, seed)
     if start == "wrongbench":
         init = wrong_bench(init)
-    t0 = time.perf_counter()
-    res = replay([sim.data], init, config)
-    wall = time.perf_counter() - t0
+    applied: dict[int, np.ndarray] = {}  # the prior variance each (re)started slice was given, by its start
+
+    def _record(x: np.ndarray, P: np.ndarray, idx: Any, value: Any, cov: Any) -> None:
+        if isinstance(idx, slice) and np.ndim(cov) == 2:
+            applied[idx.start] = np.diag(cov).copy()
+        orig(x, P, idx, value, cov)
+
+    orig = _ukf_start.reset_states
+    _ukf_start.reset_states = _record  # only the mag's cold fit and its raw prior go through start.py
+    try:
+        t0 = time.perf_counter()
+        res = replay([sim.data], init, config, keep_state=True)
+        wall = time.perf_counter() - t0
+    finally:
+        _ukf_start.reset_states = orig
     cal = res.calibration
     g = cal.meta["online"]["gauge"]
     gs = g["sensor"]
@@ -155,6 +174,7 @@ def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10
             z += list(e / np.asarray(c.sigma[p]))
             held += [s == gs and p in g["terms"]] * 3
     ratios = res.observability
+    dn = _data_nees(res.state, applied, tr, np.array(held))
     det = np.array([ratios[nm]["ratio"] < 0.5 if nm in ratios else False for nm in NAMES])
     t_to = sim.truth.vehicle.get("takeoff_at") or 0.0
     rows = [r for r in res.trace if r["t"] >= t_to + 60.0]
@@ -175,7 +195,25 @@ def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10
     return FlightRun(profile, start, seed, np.array(z), np.array(err), np.array(held), det, gb,
                      kinds.get("divergence", 0), kinds, sim.data.duration / wall,
                      cal.meta.get("online", {}).get("observability", {}), h["verdict"], tuple(h["reasons"]),
-                     nis_out, _mean(figs.get("accel")), _mean(figs.get("accel_vehicle")))
+                     nis_out, _mean(figs.get("accel")), _mean(figs.get("accel_vehicle")), dn.nees, dn.dof)
+
+
+def _data_nees(state: dict[str, Any] | None, applied: dict[int, np.ndarray], truth: Calibration, held: np.ndarray
+               ) -> Any:
+    """The prior-free NEES (:func:`onlinecal.testing.nees.data_only_nees`) of the 36 calibration terms less
+    the gauge's held ones: the final x and P of the replay's state, its prior (x₀ and the variance each
+    slice was given: the initial diagonal, or the magnetometer's cold-fit σ where that fit started it)."""
+    assert state is not None
+    names = list(state["names"])
+    idx = np.array([names.index(nm) for nm in NAMES])
+    x, P = np.asarray(state["x"]), np.asarray(state["P"])
+    x0 = np.asarray(decode(state["state"]["prior_x"]), float)
+    v0 = np.asarray(decode(state["state"]["prior_sigma"]), float) ** 2
+    for start, var in applied.items():
+        v0[start : start + var.shape[0]] = var
+    t = np.concatenate([np.asarray(truth.sensor(s).params()[p]) for s in SENSORS for p in PARAMS])  # type: ignore[union-attr]
+    k = idx[~held]
+    return data_only_nees(x[k], P[np.ix_(k, k)], x0[k], v0[k], t[~held])
 
 
 def _mean(fig: dict[str, Any] | None) -> float:
@@ -214,6 +252,13 @@ def summary(runs: list[FlightRun]) -> list[str]:
         out.append(f"    NEES over the determined terms, all seeds: {nd[:, 0].sum():.1f} for {k_d} dof, 99 % band "
                    f"[{lo_d:.1f}, {hi_d:.1f}] (terms at their prior are left out: the truth is not drawn from the "
                    "cold prior, so their z only says the prior was wide)")
+        dn = np.array([(r.data_nees, r.data_dof) for r in rs])
+        k_n = int(dn[:, 1].sum())
+        if k_n:
+            lo_n, hi_n = chi2.ppf([0.005, 0.995], k_n)
+            inside = "inside" if lo_n <= dn[:, 0].sum() <= hi_n else ("below" if dn[:, 0].sum() < lo_n else "ABOVE")
+            out.append(f"    NEES with the prior taken out (onlinecal.testing.nees, determined directions), all seeds: "
+                       f"{dn[:, 0].sum():.1f} for {k_n} dof, 99 % band [{lo_n:.1f}, {hi_n:.1f}]: {inside}")
         nb = np.array([r.nees_determined_no_gyro_bias for r in rs])
         k_b = int(nb[:, 1].sum())
         if k_b:
@@ -264,6 +309,10 @@ def main() -> None:
     ap.add_argument("--save", default=None, metavar="JSON", help="per-run z-scores and flags")
     ap.add_argument("--rest-rate-sigma", type=float, default=None,
                     help="diagnostic only: the zero-rate update's allowance (rad/s; default the config's)")
+    ap.add_argument("--vehicle-accel-sigma", type=float, default=None,
+                    help="diagnostic only: the vehicle-acceleration model's σ_v (m/s²; default the config's)")
+    ap.add_argument("--vehicle-accel-tau", type=float, default=None,
+                    help="diagnostic only: the vehicle-acceleration model's τ_v (s; default the config's)")
     ap.add_argument("--latitude", type=float, default=DEFAULT_LATITUDE_DEG,
                     help=f"deg, where the flights' gyro senses the Earth's rotation (default {DEFAULT_LATITUDE_DEG})")
     ap.add_argument("--no-earth-rate", action="store_true", help="diagnostic: flights without the Earth's rotation")
@@ -274,7 +323,10 @@ def main() -> None:
         for line in summary(_load(args.summary_of)):
             print(line)
         return
-    config = UKFConfig(rest_rate_sigma=args.rest_rate_sigma) if args.rest_rate_sigma is not None else None
+    over = {k: v for k, v in (("rest_rate_sigma", args.rest_rate_sigma),
+                              ("vehicle_accel_sigma", args.vehicle_accel_sigma),
+                              ("vehicle_accel_tau", args.vehicle_accel_tau)) if v is not None}
+    config = UKFConfig(**over) if over else None
     print("# flights' gyro: " + ("no Earth rate (diagnostic)" if args.no_earth_rate else
           f"Earth rate at latitude {args.latitude:g}°") + "; bench sessions: paper profile, no Earth rate", flush=True)
     runs = []
@@ -287,7 +339,8 @@ def main() -> None:
                 runs.append(r)
                 print(f"{prof:10s} {st:5s} seed {seed:2d}: within 3σ {100 * r.coverage:5.1f} %, worst "
                       f"{np.abs(r.z).max():5.2f}σ ({NAMES[int(np.argmax(np.abs(r.z)))]}), NEES {r.nees:6.1f}/"
-                      f"{r.nees_dof}, determined {int(r.determined.sum())}, gyro bias @60 s "
+                      f"{r.nees_dof}, data NEES {r.data_nees:5.1f}/{r.data_dof}, determined "
+                      f"{int(r.determined.sum())}, gyro bias @60 s "
                       f"{r.gyro_bias_err_60s:.1e}, events {r.events or '-'}, health {r.verdict}, accel NIS "
                       f"{r.accel_nis:.2f}/{r.accel_vehicle_nis:.2f}, ×{r.realtime:.0f}", flush=True)
                 if args.save:
@@ -305,7 +358,8 @@ def _save(path: str, runs: list[FlightRun]) -> None:
                     "determined": r.determined.tolist(), "held": r.held.tolist(),
                     "gyro_bias_err_60s": r.gyro_bias_err_60s, "events": r.events, "realtime": r.realtime,
                     "verdict": r.verdict, "reasons": list(r.reasons), "nis_out": r.nis_out,
-                    "accel_nis": r.accel_nis, "accel_vehicle_nis": r.accel_vehicle_nis} for r in runs], fh)
+                    "accel_nis": r.accel_nis, "accel_vehicle_nis": r.accel_vehicle_nis,
+                    "data_nees": r.data_nees, "data_dof": r.data_dof} for r in runs], fh)
 
 
 def _load(path: str) -> list[FlightRun]:
@@ -317,7 +371,7 @@ def _load(path: str) -> list[FlightRun]:
     return [FlightRun(d["profile"], d["start"], d["seed"], np.array(d["z"]), np.full(36, np.nan), np.array(d["held"]),
                       np.array(d["determined"]), d["gyro_bias_err_60s"], d["events"].get("divergence", 0), d["events"],
                       d["realtime"], {}, d["verdict"], tuple(d["reasons"]), d["nis_out"], d["accel_nis"],
-                      d["accel_vehicle_nis"]) for d in rows]
+                      d["accel_vehicle_nis"], d.get("data_nees", float("nan")), d.get("data_dof", 0)) for d in rows]
 
 
 if __name__ == "__main__":

@@ -313,6 +313,8 @@ def main() -> None:
                     help="diagnostic only: the vehicle-acceleration model's σ_v (m/s²; default the config's)")
     ap.add_argument("--vehicle-accel-tau", type=float, default=None,
                     help="diagnostic only: the vehicle-acceleration model's τ_v (s; default the config's)")
+    ap.add_argument("--sp-alpha", type=float, default=None,
+                    help="diagnostic only: the scaled unscented transform's spread α (default the config's)")
     ap.add_argument("--latitude", type=float, default=DEFAULT_LATITUDE_DEG,
                     help=f"deg, where the flights' gyro senses the Earth's rotation (default {DEFAULT_LATITUDE_DEG})")
     ap.add_argument("--no-earth-rate", action="store_true", help="diagnostic: flights without the Earth's rotation")
@@ -325,7 +327,8 @@ def main() -> None:
         return
     over = {k: v for k, v in (("rest_rate_sigma", args.rest_rate_sigma),
                               ("vehicle_accel_sigma", args.vehicle_accel_sigma),
-                              ("vehicle_accel_tau", args.vehicle_accel_tau)) if v is not None}
+                              ("vehicle_accel_tau", args.vehicle_accel_tau),
+                              ("sp_alpha", args.sp_alpha)) if v is not None}
     config = UKFConfig(**over) if over else None
     print("# flights' gyro: " + ("no Earth rate (diagnostic)" if args.no_earth_rate else
           f"Earth rate at latitude {args.latitude:g}°") + "; bench sessions: paper profile, no Earth rate", flush=True)

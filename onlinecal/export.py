@@ -515,6 +515,8 @@ def guard(cal: Calibration, names: Sequence[str], health: dict[str, Any] | None 
         (fresh["verdict"], str(health.get("verdict", "ok"))), key=("ok", "degraded", "failed").index)
     undetermined = set(fresh["checks"].get("undetermined", [])) | set(
         ((health or {}).get("checks") or {}).get("undetermined") or [])
+    motion_only = set(fresh["checks"].get("motion_only", [])) | set(
+        ((health or {}).get("checks") or {}).get("motion_only") or [])
     by_sensor = {s: [r for r in reasons if r.startswith(f"{s}:")] for s in ("gyro", "accel", "mag")}
     general = [r for r in reasons if not any(r.startswith(f"{s}:") for s in ("gyro", "accel", "mag"))]
     out: dict[str, str] = {}
@@ -534,6 +536,10 @@ def guard(cal: Calibration, names: Sequence[str], health: dict[str, Any] | None 
                                         else {f"{sensor}.{p}.{'xyz'[i]}"})
             if keys & undetermined:
                 out[name] = f"{sorted(keys & undetermined)[0]} was not determined by the data"
+                break
+            if keys & motion_only:
+                out[name] = (f"{sorted(keys & motion_only)[0]} was determined through motion alone (no rest with its "
+                             "axis up and down): it holds only if the motion carried no linear acceleration")
                 break
             lim = SIGMA_MAX.get((sensor, p))
             sig = c.sigma.get(p)

@@ -381,6 +381,15 @@ def mag_sigma_covers_extrapolation(cal: Calibration, observability: dict[str, An
         cal.mag is not None and cal.mag.sigma)
 
 
+def motion_only_terms(online: Any) -> list[str]:
+    """The terms an online result calls determined through motion alone (``meta.online.observability.caution``,
+    :func:`onlinecal.ukf.vehicle.motion_only`): accelerometer biases and scales whose axis never rested up
+    and down."""
+    obs = online.get("observability") if isinstance(online, dict) else None
+    rows = obs.get("caution") if isinstance(obs, dict) else None
+    return sorted(str(r["term"]) for r in rows or [] if isinstance(r, dict) and "term" in r)
+
+
 def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -> list[str]:
     """Terms the data did not determine: posterior σ / prior σ > ½ (the filter's observability), or, with
     no observability, a term without σ of a sensor that has σ for others (the batch left it at its start
@@ -463,6 +472,12 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
     checks["undetermined"] = und
     if und:
         notes.append("not determined by the data (start value kept, σ wide): " + ", ".join(und))
+    caution = motion_only_terms(online)
+    checks["motion_only"] = caution
+    if caution:
+        notes.append("determined through motion alone, on the assumption that the motion carried no linear "
+                     "acceleration (no rest with the axis up and with it down; a hand or a vehicle breaks it, "
+                     "and `export` leaves these out): " + ", ".join(caution))
     notes += [w for w in warnings if w not in notes]
     verdict = "ok"
     for v, _ in found:

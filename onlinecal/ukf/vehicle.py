@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..advice import faces_advice, faces_at_rest, missing_faces
+from ..advice import face_words, faces_advice, faces_at_rest, missing_faces
 from .layout import ATT
 
 Array = NDArray[np.float64]
@@ -310,7 +310,35 @@ def observability_report(names: list[str], sigma: Array, prior_sigma: Array, cov
         und.append({"term": nm, "sigma_ratio": round(r, 4), "reason": why, "motion_needed": need})
     return {"rule": f"determined: final σ < {ratio:g} × prior σ; the others keep (about) their prior and "
                     "are not calibrated by this data",
-            "determined": det, "undetermined": und, "coverage": cov.to_dict(), "vehicle": vehicle.to_dict()}
+            "determined": det, "undetermined": und, "caution": motion_only(det, cov), "coverage": cov.to_dict(),
+            "vehicle": vehicle.to_dict()}
+
+
+def motion_only(determined: list[str], cov: MotionCoverage) -> list[dict[str, str]]:
+    """The accelerometer bias and scale terms in ``determined`` that the rests cannot have determined: the
+    log never rested with their axis up and with it down (:func:`onlinecal.advice.faces_at_rest`), so
+    at rest gravity fixes only s·(raw − o) along that axis, not the split. What split it is the motion,
+    read as gravity under the quasi-static assumption — no linear acceleration beyond what the norm
+    test sees (``AccelModel.deviation``). While the accelerometer's calibration is cold that test is
+    blind to a hand's or a vehicle's accelerations of up to a metre per second squared (the real PX4 log
+    ``px4-ulog/sample.ulg``: six seconds of handling gave its z scale 0.957 ± 0.004, the rest alone
+    1.006 ± 0.036; docs/flight.md). Each: ``{"term", "reason", "motion_needed"}``."""
+    seen = faces_at_rest(cov.rest_dirs) if cov.rest_dirs else []
+    out = []
+    for nm in determined:
+        s, p, ax = nm.split(".") if nm.count(".") == 2 else ("", "", "")
+        if s != "accel" or p not in ("bias", "scale"):
+            continue
+        miss = missing_faces(seen, [ax])
+        if not miss:
+            continue
+        need = faces_advice(miss) or ""
+        out.append({"term": nm,
+                    "reason": (f"determined through motion alone: the log rested in {len(cov.rest_dirs)} attitude(s), "
+                               f"never with {' or with '.join(face_words(f) for f in miss)}, so its value rests on "
+                               "the motion being free of linear acceleration, which a hand or a vehicle breaks"),
+                    "motion_needed": need})
+    return out
 
 
 def observability_text(rep: dict[str, Any]) -> list[str]:
@@ -321,6 +349,8 @@ def observability_text(rep: dict[str, Any]) -> list[str]:
         groups.setdefault((u["reason"], u["motion_needed"]), []).append(u["term"])
     for (why, need), terms in groups.items():
         lines.append(f"not determined: {', '.join(terms)} — {why}; would need: {need}")
+    for c in rep.get("caution", []):
+        lines.append(f"caution: {c['term']} — {c['reason']}; to determine it from rests: {c['motion_needed']}")
     if rep["vehicle"]["active"]:
         lines.append(f"vehicle motion from t = {rep['vehicle']['since']:.1f} s ({rep['vehicle']['reason']}): "
                      "the accelerometer is a gravity reference only at rest")

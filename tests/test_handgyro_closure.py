@@ -244,3 +244,28 @@ def test_ferraris_y_turn_is_short_by_the_faces_and_x_z_are_at_360(data_dir):
             assert 354.0 <= ang * f <= 358.0
         else:
             assert abs(ang * f - 360.0) <= 1.0, (k, ang, f)
+
+
+@pytest.mark.slow
+def test_the_checks_end_windows_are_not_held_still_on_the_moving_files(marg_batch, data_dir):
+    """The check's premise ("both ends must be held roughly still") measured: the accelerometer samples of
+    each half-second end window, turned by the calibrated gyro into the window's middle frame, scatter by the
+    noise alone on the unmoved files and by several times more on every moving file (docs/results.md, "The
+    check's own ends"): hand accelerations of the size that moves the check's references by degrees."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("gyro_closure", _tool(data_dir))
+    assert spec is not None and spec.loader is not None
+    gc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gc)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs"))
+    from results_gyro import end_window_scatter
+
+    files, _, res = marg_batch
+    cal = _cal(res)
+    still = [x for f in files if f.name.startswith("unmoved") for x, _ in end_window_scatter(gc, f, cal)]
+    moving = {f.name: max(x for x, _ in end_window_scatter(gc, f, cal))
+              for f in files if not f.name.startswith("unmoved")}
+    assert len(still) == 6 and max(still) < 0.6, still  # the MPU6050's noise, ~0.04 m/s² against 9.8
+    assert min(moving.values()) > 1.5 * max(still), moving
+    assert np.median(list(moving.values())) > 1.5, moving

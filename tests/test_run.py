@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -169,8 +170,12 @@ def test_lossy_udp_live_run_matches_replay_of_the_same_log(paper, uninterrupted)
 
 @pytest.mark.slow
 def test_kill_9_and_resume_matches_uninterrupted_run(paper, uninterrupted) -> None:
-    """Issue 5: the run is killed (SIGKILL) mid-stream and restarted with --resume while the vehicle keeps
-    streaming; the final result is within 3σ of the uninterrupted run's for every parameter."""
+    """Issue 5: the run is killed (SIGKILL) mid-stream and restarted with --resume; the final result is within
+    3σ of the uninterrupted run's for every parameter. The samples sent after the last checkpoint are lost;
+    the vehicle's stream then pauses until the restarted run listens (a link outage). Streaming on through
+    the restart made the loss the restart's wall time × 20 (the stream runs at 20× real time): 123–196 s of
+    the 309-s session on a loaded machine, most of the rotation phases, and the comparison measured the
+    machine's load instead of the resume."""
     port = free_port()
     ck = paper.dir / "resume.ckpt"
     out = paper.dir / "resumed.json"
@@ -179,9 +184,10 @@ def test_kill_9_and_resume_matches_uninterrupted_run(paper, uninterrupted) -> No
     first = Run(paper.dir, "first", *args)
     second = None
     snd = None
+    outage = threading.Event()
     try:
         first.wait_for("link open")
-        snd = sending(paper.data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, **FAULTS)
+        snd = sending(paper.data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE, hold=outage, **FAULTS)
         # Kill once a checkpoint holds 80 s of data (during the static positions).
         deadline = time.monotonic() + 30
         fed_s = 0.0
@@ -191,10 +197,14 @@ def test_kill_9_and_resume_matches_uninterrupted_run(paper, uninterrupted) -> No
             if ck.exists():
                 fed = json.loads(ck.read_text())["fed"]  # atomic replace: always a whole file
                 fed_s = fed["t_last"] - fed["t_first"]
+        time.sleep(0.25)  # the stream goes on past that checkpoint: ~5 s of data the restart must count lost
         first.proc.send_signal(signal.SIGKILL)
+        outage.set()
         assert first.proc.wait(10) == -signal.SIGKILL
         killed_at = json.loads(ck.read_text())["fed"]["t_last"]
         second = Run(paper.dir, "second", *args, "--resume")
+        second.wait_for("link open")
+        outage.clear()
         rc = second.wait()
     finally:
         first.kill()

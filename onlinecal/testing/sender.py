@@ -93,7 +93,8 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
                  duplicate: float = 0.0, seed: int = 0, heartbeat: bool = True,
                  stop_event: threading.Event | None = None, system_id: int = 1,
                  wait_peer_s: float = 10.0, params: dict[str, float] | None = None, strict_params: bool = False,
-                 param_bytewise: bool = False, linger_s: float = 0.0) -> dict[str, Any]:
+                 param_bytewise: bool = False, linger_s: float = 0.0,
+                 hold: threading.Event | None = None) -> dict[str, Any]:
     """Stream ``data`` as RAW_IMU over the pymavlink link ``url``; return what was done.
 
     ``rate_scale``: wall seconds per second of data (0 as fast as possible, 1 real time, 0.1 ten times
@@ -108,7 +109,8 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     does. ``param_bytewise``: INT32 parameters travel as the int's bytes in the float (PX4's
     PARAM_ENCODE_BYTEWISE; the table holds the int), otherwise as a float (ArduPilot's cast).
     ``linger_s``: after the stream, stay on the link that long (heartbeats, commands, parameters)
-    or until ``stop_event``.
+    or until ``stop_event``. ``hold``: while set, nothing is sent and the pacing clock stops (a link
+    outage: the stream goes on where it stopped, not with a burst to catch up).
 
     Returns counts: ``sent`` (RAW_IMU packets written, duplicates included), ``samples``, ``dropped``,
     ``reordered``, ``duplicated``, ``commands`` (COMMAND_LONGs answered), ``interval_us`` (the last
@@ -213,6 +215,11 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
         for k, copies in order:
             if stop.is_set():
                 break
+            if hold is not None and hold.is_set():
+                held_from = time.monotonic()
+                while hold.is_set() and not stop.is_set():
+                    stop.wait(0.01)
+                t0_wall += time.monotonic() - held_from
             t_data = max(t_data, int(rows[k, 0]))
             now = time.monotonic()
             if rate_scale > 0:

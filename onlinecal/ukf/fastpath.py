@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import os
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -296,6 +296,57 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
 
 
 @_njit
+def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
+                  c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
+                  q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float, gravity: float,
+                  g0: int, a0: int, m0: int, dip_col: int, dev_bail: float, use_acc: bool, dev_gain: float,
+                  lever_m: float, var_v: float, z_mag: Array, var_mag: float, hold_acc: int, hold_mag: int,
+                  gates: Array, consider: NDArray[np.bool_], damp: float, yaw_var: float, max_rate: Array,
+                  angle: Array, two: float
+                  ) -> tuple[int, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, float,
+                             Array, Array, Array, NDArray[np.int64], bool, Array, bool]:
+    """One ordinary motion block in one call: :func:`predict_kernel`, the accel's quasi-static R
+    (:meth:`.measurements.AccelModel.variance`'s terms, with the vehicle's ``var_v`` — an input: Python decides
+    it), the motion coverage (:meth:`.vehicle.MotionCoverage.add_motion`'s maxima and turned angles, in place
+    in max_rate (3,) and angle (3,) rad/s, rad), then :func:`update_fold_kernel`.
+
+    Arguments as the two kernels'; ``dev_bail`` m/s²: a specific-force deviation above it is an event Python
+    must see before the update (the vehicle detector switching on, which changes var_v): the call then
+    stops after the prediction. ``two`` = 2.0, passed at run time so that the squares are libm's ``pow``
+    as in the Python they replace (a constant exponent compiles to x·x, which differs in the last bit for
+    about one value in a thousand).
+
+    Returns (stage: 0 P not positive definite, 1 stopped after the prediction, 2 done; the prediction
+    (X, x_pred, Y, P_pred, f_body, h_body, sens_o, sens_Minv: 1-row placeholders at stage 2), R_end of the
+    mean (3, 3), ω of the mean (3,), the deviation; the update (x, P, NIS, status, solved, R, fine:
+    placeholders before stage 2)) — see the two kernels.
+    """
+    ok, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
+        x, P, scale, order, R_nom, w, dt, c_mag, has_mag, dyn, Wm, Wc, q, q_att_jerk, dt_blk, w_mean, a_mean,
+        sig_mean, gravity, g0, a0, m0, dip_col)
+    if not ok or dev > dev_bail:
+        return (1 if ok else 0, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev, x_pred,
+                P_pred, np.zeros(1), np.full(1, -1, np.int64), True, R0, False)
+    rate = math.sqrt(np.dot(om, om))  # (BLAS ddot, as np.dot in Python: the same bits)
+    for i in range(3):  # MotionCoverage.add_motion: np.maximum (NaN wins), ∫|ω_i| dt
+        r = abs(om[i])
+        m = max_rate[i]
+        max_rate[i] = r if (r > m or r != r) else m
+        angle[i] = angle[i] + r * dt_blk
+    var_a = 0.0
+    if use_acc:
+        var_a = math.pow(sig_mean, two) + math.pow(dev_gain * dev, two) + 2.0 * gravity * dev
+        if rate != 0.0:
+            var_a = var_a + math.pow(lever_m * math.pow(rate, two), two)
+        var_a += var_v
+    xs, Ps, nis, status, solved, R_new, fine = update_fold_kernel(
+        X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, z_mag, has_mag, var_mag, hold_acc,
+        hold_mag, gravity, Wm, Wc, gates, consider, damp, R0, yaw_var)
+    z1, z2, z3 = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1, 3))
+    return (2, z2, z1, z2, z2, R0, z2, z2, z2, z3, om, dev, xs, Ps, nis, status, solved, R_new, fine)
+
+
+@_njit
 def fold_kernel(x: Array, P: Array, R_nom: Array, yaw_var: float) -> tuple[Array, Array, Array, bool]:
     """:func:`.attitude_init.fold_attitude` (USQUE reset) of a posterior x (n,), P (n, n) on R_nom (3, 3):
     P symmetrised, R = R_nom exp([δθ]_x), δθ = 0 (x is not changed: a copy); with yaw_var ≥ 0 the heading's
@@ -365,12 +416,26 @@ def _hold_col(cal: OnlineCalibrator, sensor: str, held: dict[str, bool]) -> int:
     return -1 if sl is None else int(sl.start)
 
 
+def set_merged(on: bool) -> bool:
+    """One compiled call per ordinary motion block (:func:`motion_kernel`, the default) or two
+    (:func:`predict_kernel`, :func:`update_fold_kernel`: what a block whose prediction raises an event takes);
+    returns the previous setting (tests compare both: the same bits)."""
+    global _merged
+    old, _merged = _merged, bool(on)
+    return old
+
+
+_merged = True
+_TWO = 2.0  # the squares' exponent, a run-time value in the kernels (see motion_kernel)
+
+
 def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float],
                      held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
     """:func:`.step.motion_step` for a block where :func:`applies`: the same steps, in the same order, with
-    the arithmetic in :func:`predict_kernel` and :func:`update_fold_kernel`."""
-    from .step import commit_folded, earth_rate_q, gated_bookkeeping, vehicle_accel_from_dev  # (step imports this)
-
+    the arithmetic in :func:`motion_kernel` (one call), or, where the prediction raises an event Python
+    must see first (the vehicle detector switching on), in :func:`predict_kernel` and
+    :func:`update_fold_kernel` with the detector between them."""
+    st = _step_module()
     c = cal.config
     tl = float(t[-1])
     i, j = int(B.lo[b]), int(B.hi[b])
@@ -382,7 +447,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
     dt_blk = float(t[-1] - cal._t_last)
     s_g = n["gyro"]
-    q = earth_rate_q(cal, cal._process_noise(dt_blk, s_g), dt_blk)
+    q = st.earth_rate_q(cal, cal._process_noise(dt_blk, s_g), dt_blk)
     jerk = 0.0
     if L >= 2:
         noise = float(B.jerk_n[b]) * 6.0 * (s_g * dt_blk / L / 4) ** 2
@@ -393,48 +458,95 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
     sig_mean = n["accel"] / math.sqrt(t.size)
     a_mean = B.a_mean[b]
-    ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
-        cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
-        lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
-        _G0, _A0, _M0, DIP)
-    if not ok:
-        cal._diverged("covariance is not positive definite", tl)
-        return
-    cal.R_nom = R_end0
+    use_acc = not clip["accel"]
+    n_m = int(B.mhi[b] - B.mlo[b])
+    var_mag = n["mag"] ** 2 / max(n_m, 1)
+    yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
+    gates = np.array([cal._gates["accel"], cal._gates["mag"]])
+    hold_a, hold_m = _hold_col(cal, "accel", held), _hold_col(cal, "mag", held)
+    mod = cal._models.acc
+    veh = cal._vehicle
+    if _merged:
+        # var_v as the detector stands; a deviation that would switch it on stops the call after the prediction
+        var_v = st.vehicle_accel_now(cal, dt_blk)
+        cov = cal._coverage
+        (stage, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev, x, P, nis, status, solved,
+         R_new, fine) = motion_kernel(
+            cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            _G0, _A0, _M0, DIP, veh.dev_switch_above() if c.vehicle == "auto" else math.inf, use_acc,
+            mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates, lay.consider,
+            float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
+        if stage == 0:
+            cal._diverged("covariance is not positive definite", tl)
+            return
+        cal.R_nom = R_end0
+        if stage == 2:
+            if st.vehicle_accel_from_dev(cal, dev, dt_blk, tl) != var_v:  # (the detector's run of blocks)
+                raise RuntimeError("fastpath: the vehicle's var_v changed with the prediction; the merged "
+                                   "motion_kernel needs it before (or dev_bail for the blocks where it changes)")
+            if veh.active:  # (MotionCoverage.add_motion's flight time; its maxima and angles in the kernel)
+                cov.flight_s += dt_blk
+            if use_mag:
+                cov.add_field(calibrated(cal, "mag", B.m_mean[b]))
+            _finish_motion(cal, st, x, P, nis, status, solved, R_new, fine, use_acc, has_mag, var_v, tl)
+            return
+    else:
+        ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
+            cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            _G0, _A0, _M0, DIP)
+        if not ok:
+            cal._diverged("covariance is not positive definite", tl)
+            return
+        cal.R_nom = R_end0
+    # two calls: the vehicle detector (and any event it raises) between the prediction and the update
     rate = math.sqrt(float(np.dot(om, om)))  # (np.linalg.norm's arithmetic, without its checks)
-    var_v = vehicle_accel_from_dev(cal, dev, dt_blk, tl)
-    cal._coverage.add_motion(om, dt_blk, cal._vehicle.active)
+    var_v = st.vehicle_accel_from_dev(cal, dev, dt_blk, tl)
+    cal._coverage.add_motion(om, dt_blk, veh.active)
     if use_mag:
         cal._coverage.add_field(calibrated(cal, "mag", B.m_mean[b]))
-    use_acc = not clip["accel"]
     var_a = 0.0
     if use_acc:
-        mod = cal._models.acc
         g = mod.gravity
         var_a = sig_mean**2 + (mod.dev_gain * dev) ** 2 + 2.0 * g * dev
         if rate:
             var_a = var_a + (mod.lever_m * rate**2) ** 2
         var_a += var_v
-    n_m = int(B.mhi[b] - B.mlo[b])
-    var_mag = n["mag"] ** 2 / max(n_m, 1)
-    yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
-    k_div = cal._div.count
-    k_v = var_v / c.vehicle_accel_sigma**2 if var_v > 0 else 0.0
-    gates = np.array([cal._gates["accel"], cal._gates["mag"]])
     x, P, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
-        _hold_col(cal, "accel", held), _hold_col(cal, "mag", held), c.gravity, cal._Wm, cal._Wc, gates,
-        lay.consider, float(c.update_damping), cal.R_nom, yaw)
+        hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
+    _finish_motion(cal, st, x, P, nis, status, solved, R_new, fine, use_acc, has_mag, var_v, tl)
+
+
+def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, nis: Array, status: NDArray[np.int64],
+                   solved: bool, R_new: Array, fine: bool, use_acc: bool, has_mag: bool, var_v: float,
+                   tl: float) -> None:
+    """The end of a motion block after its update: the NIS bookkeeping (windows, divergence) and the commit."""
     if not solved:
         raise np.linalg.LinAlgError("Singular matrix")
+    k_div = cal._div.count
+    k_v = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
     res = UpdateResult(x, P)
     names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
     for k, s in enumerate(names):
         if status[k] >= 0:
             res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
-    gated_bookkeeping(cal, res, tl, True, k_v)
+    st.gated_bookkeeping(cal, res, tl, True, k_v)
     if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands
-        commit_folded(cal, R_new, x, P, fine, tl)
+        st.commit_folded(cal, R_new, x, P, fine, tl)
+
+
+_STEP: list[Any] = []
+
+
+def _step_module() -> Any:
+    """:mod:`.step` (which imports this module: looked up once, at the first block)."""
+    if not _STEP:
+        from . import step
+
+        _STEP.append(step)
+    return _STEP[0]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -553,8 +665,7 @@ def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0:
     """The end of :func:`.step.rest_step` (sigma points, rest measurements, the gated update, its NIS
     bookkeeping, the fold and commit) with the arithmetic in :func:`rest_update_kernel`; ``k_div`` the
     divergence count before the block, ``first`` whether the rest began with this block (its NIS recorded)."""
-    from .step import commit_folded, gated_bookkeeping  # (step imports this module)
-
+    st = _step_module()
     c = cal.config
     lay = cal.lay
     nst = lay.n
@@ -588,7 +699,7 @@ def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0:
         res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
         if status[k] != 2:
             res.post[s] = (post_z[k], post_P[k])
-    gated_bookkeeping(cal, res, tl, first, 0.0)
+    st.gated_bookkeeping(cal, res, tl, first, 0.0)
     acc.post = res.post
     if cal._div.count == k_div:  # a divergence in the update also ended the running rest
-        commit_folded(cal, R_new, x, P, fine, tl)
+        st.commit_folded(cal, R_new, x, P, fine, tl)

@@ -185,9 +185,9 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     first columns; dip_col the dip's.
 
     Returns (ok: P positive definite, the propagated sigma points X (S, n), x_pred (n,), Y (S, n),
-    P_pred (n, n), R_end of the mean (3, 3),
-    f_body (S, 3), h_body (S, 3), sens_o (2S, 3), sens_Minv (2S, 3, 3) of accel then mag, ω of the mean
-    (3,) rad/s, the specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
+    P_pred (n, n), R_end of the mean (3, 3), f_body (S, 3), h_body (S, 3), sens_o (2S, 3), sens_Minv
+    (2S, 3, 3) of accel then mag (S rows, the accel's, without has_mag), ω of the mean (3,) rad/s, the
+    specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
     """
     X, ok = sigma_points_kernel(x, P, scale, order)
     S, Sd = X.shape[0], dyn.shape[0]
@@ -195,14 +195,17 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
         z3 = np.zeros((1, 3))
         return (False, X, x.copy(), X.copy(), P.copy(), R_nom.copy(), z3, z3.copy(), z3.copy(), np.zeros((1, 3, 3)),
                 np.zeros(3), 0.0)
-    p = np.empty((Sd + 2 * S, 12))
+    # the mag's model only where the block uses it (its rows are read by the mag update alone: a log whose
+    # magnetometer is not yet started — or has none — skips them, up to half the sensor-model trigonometry)
+    p = np.empty((Sd + (2 * S if has_mag else S), 12))
     for si in range(Sd):
         for k in range(12):
             p[si, k] = X[dyn[si], g0 + k]
     for s in range(S):
         for k in range(12):
             p[Sd + s, k] = X[s, a0 + k]
-            p[Sd + S + s, k] = X[s, m0 + k]
+            if has_mag:
+                p[Sd + S + s, k] = X[s, m0 + k]
     o_all, M_all, Mi_all = _model_pair_shared(p, Sd, Sd + S)
     o_g = o_all[:Sd].copy()
     M_g = M_all[:Sd].copy()
@@ -575,11 +578,12 @@ def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.int
     if not ok:
         return (False, x0.copy(), P0.copy(), np.zeros(nb), np.full(nb, -1, np.int64), np.zeros((nb, 3)),
                 np.zeros((nb, 3, 3)), True, R_nom.copy(), False)
-    p = np.empty((2 * S, 12))
+    p = np.empty(((2 * S if has_mag else S), 12))  # the mag's rows only where the rest has mag samples
     for s in range(S):
         for k in range(12):
             p[s, k] = X[s, a0 + k]
-            p[S + s, k] = X[s, m0 + k]
+            if has_mag:
+                p[S + s, k] = X[s, m0 + k]
     o, M, Mi = _model_pair_shared(p, S, 2 * S)
     Rs = np.empty((S, 3, 3))
     Rd = np.empty((3, 3))

@@ -1,32 +1,38 @@
-"""The filter step of an ordinary block in compiled calls (issue 15): a motion block in two, a rest block's
-update in one — the largest pieces of the per-block Python that could be moved into numba in this round.
+"""The filter step of an ordinary block in compiled calls (issue 15): a motion block in one, a rest block's
+update in one — the largest pieces of the per-block Python that could be moved into numba so far.
 
 :func:`.step.motion_step` on the numba backend makes, per block, some forty small numpy and kernel calls
 (sigma points, sensor models, propagation, attitude errors, process noise, moments, the vehicle
 deviation, measurements, update, attitude fold, heading marginalisation, checks). For a block without
 model extensions and without a gyro hold offset (the ordinary case), :func:`motion_step_fast` replaces them by
+one call of :func:`motion_kernel`, which runs
 
 1. :func:`predict_kernel` — sigma points (:func:`.kernels_update.sigma_points_kernel`), eqs. 1–6 for the
-   dynamic points' gyro and every point's accel and mag (:func:`.kernels_propagate.model_pair_kernel`),
-   the propagation (:func:`.kernels_propagate.propagate_lanes_kernel`), the attitude errors
+   dynamic points' gyro and every point's accel and (where the block uses it) mag
+   (:func:`.kernels_propagate.model_pair_kernel`), the propagation
+   (:func:`.kernels_propagate.propagate_lanes_kernel`), the attitude errors
    (:func:`.kernels_propagate.rot_log_rel_kernel`), the block's process noise
    (:func:`.predict.block_process_noise` with :func:`.noise.bilinear_var`), the unscented moments
    (:func:`.kernels_update.unscented_kernel`), the mean's turn rate and the quasi-static deviation of the
    specific force (:meth:`.measurements.AccelModel.deviation`);
-2. :func:`update_fold_kernel` — the motion measurements (:func:`.measurements.motion_measurements`: the
-   accel's quasi-static R, h(x) of accel and mag), the gated update
-   (:func:`.kernels_update.update_kernel`) and the USQUE fold of the posterior
-   (:func:`.attitude_init.fold_attitude`, :func:`.attitude_init.set_yaw_variance`) with its finiteness check.
+2. the motion coverage's maxima and turned angles (:meth:`.vehicle.MotionCoverage.add_motion`) and the
+   accel's quasi-static R (with the vehicle's var_v, which Python decides before the call);
+3. :func:`update_fold_kernel` — the motion measurements (:func:`.measurements.motion_measurements`: h(x) of
+   accel and mag), the gated update (:func:`.kernels_update.update_kernel`) and the USQUE fold of the
+   posterior (:func:`.attitude_init.fold_attitude`, :func:`.attitude_init.set_yaw_variance`) with its
+   finiteness check.
 
-Between the two, Python keeps what has state and events: the vehicle detector, the motion coverage, and
-after the second the NIS bookkeeping (:func:`.step.gated_update`'s loop: windows, divergence) and the
-commit's trace. A rest block (:func:`.step.rest_step`) keeps its running means and NIS in Python and hands
-the update to :func:`rest_update_kernel` (sigma points, :func:`.measurements.rest_measurements`, the static
-update with the posterior's predicted measurements, the fold). The kernels called are those the numba path
-already uses, so the results equal it to rounding (and the numpy reference within 1e-9 relative:
-``tests/test_speed_fastpath.py``). Blocks with model extensions, a motion block with a held gyro reading or
-with a clipped accel and no magnetometer, and everything on the numpy backend take the general path.
-``ONLINECAL_FASTPATH=0`` (or :func:`set_enabled`) turns the fast path off.
+A block whose specific-force deviation would switch the vehicle detector on (an event, and a new var_v)
+stops after 1 and finishes as two calls, the detector between them, as before (:func:`set_merged` ``False``
+takes the two calls for every block: the same bits). After the call Python keeps what has state and events:
+the NIS bookkeeping (:func:`.step.gated_update`'s loop: windows, divergence) and the commit's trace. A rest
+block (:func:`.step.rest_step`) keeps its running means and NIS in Python and hands the update to
+:func:`rest_update_kernel` (sigma points, :func:`.measurements.rest_measurements`, the static update with
+the posterior's predicted measurements, the fold). The kernels called do the numba path's arithmetic, so the
+results equal it to rounding (and the numpy reference within 1e-9 relative: ``tests/test_speed_fastpath.py``).
+Blocks with model extensions, a motion block with a held gyro reading or with a clipped accel and no
+magnetometer, and everything on the numpy backend take the general path. ``ONLINECAL_FASTPATH=0`` (or
+:func:`set_enabled`) turns the fast path off.
 """
 
 from __future__ import annotations

@@ -198,16 +198,17 @@ def test_one_call_per_block_equals_two_calls_bit_for_bit(force_div_at: float | N
     _exactly_equal(one, two)
 
 
-@pytest.mark.parametrize("has_mag, turn", [(False, 1.0), (True, 1.0), (True, 60.0)])
-def test_the_sample_major_propagation_equals_the_point_major_kernel(has_mag: bool, turn: float) -> None:
-    """propagate_lanes_kernel (all dynamic sigma points one sample at a time, the Rodrigues series for all
-    and its closed form where a step reaches 0.05 rad) against propagate_kernel (one point at a time): the
-    same bits, for slow turns (series only), fast ones (×60: 6–12 rad/s, both forms) and with the mag's
-    interpolation weights."""
-    from onlinecal.ukf.kernels_propagate import propagate_kernel, propagate_lanes_kernel
+@pytest.mark.parametrize("has_mag, turn, extra", [(False, 1.0, False), (True, 1.0, False), (True, 60.0, False),
+                                                   (True, 1.0, True)])
+def test_the_sample_major_propagation_equals_the_point_major_loop(has_mag: bool, turn: float, extra: bool) -> None:
+    """propagate_kernel (all dynamic sigma points one sample at a time, the Rodrigues series for all and its
+    closed form where a step reaches 0.05 rad) against the point-at-a-time loop it replaced
+    (_propagate_points_kernel): the same bits, for slow turns (series only), fast ones (×60: 6–12 rad/s, both
+    forms), with the mag's interpolation weights and with extra gyro offsets (the general path's)."""
+    from onlinecal.ukf.kernels_propagate import _propagate_points_kernel, propagate_kernel
     from onlinecal.ukf.kernels_update import sigma_points_kernel
 
-    rng = np.random.default_rng(11 + int(has_mag) + int(turn))
+    rng = np.random.default_rng(11 + int(has_mag) + int(turn) + 5 * int(extra))
     n, L = 40, 20
     A = rng.normal(size=(n, n)) * 0.05
     P = A @ A.T + np.eye(n) * 1e-4
@@ -221,8 +222,9 @@ def test_the_sample_major_propagation_equals_the_point_major_kernel(has_mag: boo
     w = rng.normal(0, 0.1, (L + 1, 3)) * turn
     dt = np.full(L, 0.005) + rng.normal(0, 1e-5, L)
     c_mag = rng.random(L + 1) if has_mag else np.zeros(1)
+    b_extra = rng.normal(0, 0.01, (dyn.size, L + 1, 3)) if extra else np.zeros((1, 1, 3))
     R_nom = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    ref = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, np.zeros((1, 1, 3)), False, 39)
-    new = propagate_lanes_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, 39)
+    ref = _propagate_points_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, b_extra, extra, 39)
+    new = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, b_extra, extra, 39)
     for r, v in zip(ref, new, strict=True):
         assert np.array_equal(r, v)

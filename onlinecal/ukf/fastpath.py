@@ -10,7 +10,7 @@ one call of :func:`motion_kernel`, which runs
 1. :func:`predict_kernel` — sigma points (:func:`.kernels_update.sigma_points_kernel`), eqs. 1–6 for the
    dynamic points' gyro and every point's accel and (where the block uses it) mag
    (:func:`.kernels_propagate.model_pair_kernel`), the propagation
-   (:func:`.kernels_propagate.propagate_lanes_kernel`), the attitude errors
+   (:func:`.kernels_propagate.propagate_kernel`), the attitude errors
    (:func:`.kernels_propagate.rot_log_rel_kernel`), the block's process noise
    (:func:`.predict.block_process_noise` with :func:`.noise.bilinear_var`), the unscented moments
    (:func:`.kernels_update.unscented_kernel`), the mean's turn rate and the quasi-static deviation of the
@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 
 from . import kernels
 from .kernels import _njit
-from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_lanes_kernel, rot_log_rel_kernel
+from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_kernel, rot_log_rel_kernel
 from .kernels_unscented import _STATUS, _identity
 from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
 from .layout import DIP, SENSOR_SLICE
@@ -64,6 +64,7 @@ Array = NDArray[np.float64]
 _enabled = os.environ.get("ONLINECAL_FASTPATH", "1").strip() not in ("0", "false", "no", "off")
 _G0, _A0, _M0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["accel"].start, SENSOR_SLICE["mag"].start
 _EMPTY1 = np.zeros(1)
+_EMPTY3 = np.zeros((1, 1, 3))
 
 
 def enabled() -> bool:
@@ -215,7 +216,8 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     o_all, M_all, Mi_all = _model_pair_shared(p, Sd, Sd + S)
     o_g = o_all[:Sd].copy()
     M_g = M_all[:Sd].copy()
-    R_end, f_body, h_body = propagate_lanes_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, dip_col)
+    R_end, f_body, h_body = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, _EMPTY3, False,
+                                             dip_col)
     err = rot_log_rel_kernel(R_end)
     for si in range(Sd):
         for k in range(3):

@@ -127,20 +127,14 @@ def _share_mean(X: Array, dyn: NDArray[np.intp], f_body: Array, h_body: Array, Q
 
 
 @_njit
-def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, has_mag: bool,
-                     dyn: NDArray[np.intp], o_g: Array, M_g: Array, b_extra: Array, has_extra: bool,
-                     dip_col: int) -> tuple[Array, Array, Array]:
-    """Attitude of every dynamic sigma point through one block of L IMU samples, with the block means the
-    measurements need; the loop form of :func:`onlinecal.ukf.propagate.propagate_block_numpy`. Per dynamic
-    sigma point s (the mean first): rates (:func:`_calibrated_rates`), running product P_k
-    (:func:`_integrate`), R0 = R_nom exp([δθ_s]_x).
-
-    X (S, n); R_nom (3, 3); w (L + 1, 3) rad/s; dt (L,) s; c_mag (L + 1,) mag interpolation weights (read
-    only when has_mag); dyn (S_d,) with dyn[0] = 0; o_g (S_d, 3), M_g (S_d, 3, 3); b_extra (S_d, L + 1, 3)
-    (read only when has_extra); dip_col the dip's column of X.
-    Returns R_end (S_d, 3, 3) = R0 P_L; f_body (S, 3) = mean_k (R0 P_k)ᵀ e_z; h_body (S, 3) =
-    (Σ_k c_k R0 P_k)ᵀ h_world(dip) with P_0 = I (zeros when not has_mag). Points outside dyn share the
-    mean's attitude history (row 0).
+def _propagate_points_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, has_mag: bool,
+                             dyn: NDArray[np.intp], o_g: Array, M_g: Array, b_extra: Array, has_extra: bool,
+                             dip_col: int) -> tuple[Array, Array, Array]:
+    """:func:`propagate_kernel` one dynamic sigma point at a time (its form before issue 15's sixth round),
+    kept as the reference of its order of operations: tests/test_speed_fastpath.py compares the two bit for
+    bit (compiled on first use: production never calls it). Per dynamic sigma point s (the mean first):
+    rates (:func:`_calibrated_rates`), running product P_k (:func:`_integrate`), R0 = R_nom exp([δθ_s]_x).
+    Arguments and returns as :func:`propagate_kernel`.
     """
     S, Sd, L = X.shape[0], dyn.shape[0], dt.shape[0]
     R_end = np.empty((Sd, 3, 3))
@@ -177,13 +171,27 @@ def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, 
 
 
 @_njit
-def propagate_lanes_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, has_mag: bool,
-                           dyn: NDArray[np.intp], o_g: Array, M_g: Array, dip_col: int) -> tuple[Array, Array, Array]:
-    """:func:`propagate_kernel` without extra gyro offsets (the fast path's blocks), sample-major: every
-    dynamic sigma point advanced one sample at a time (lanes), the Rodrigues series for all of them, then its
-    closed form for the few whose step is 0.05 rad or more. The same operations on every element as
-    :func:`propagate_kernel` (so the same bits: tests/test_speed_fastpath.py), without its per-sample branch
-    and call: 25–40 % less time per block (issue 15). Arguments and returns as :func:`propagate_kernel`."""
+def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, has_mag: bool,
+                     dyn: NDArray[np.intp], o_g: Array, M_g: Array, b_extra: Array, has_extra: bool,
+                     dip_col: int) -> tuple[Array, Array, Array]:
+    """Attitude of every dynamic sigma point through one block of L IMU samples, with the block means the
+    measurements need; the loop form of :func:`onlinecal.ukf.propagate.propagate_block_numpy`. Per dynamic
+    sigma point s (the mean first): rates ω_k = M_g,s (w_k − o_g,s − b_s,k) (eq. 1 on the gyro), the running
+    product P_k = P_k−1 exp([Δθ_k]_x) (P_0 = I) over the samples, Δθ_k = ½(ω_k−1 + ω_k)Δt_k + Δt_k²/12
+    ω_k−1 × ω_k (trapezoid + two-sample coning), its sums Σ_k P_k and Σ_k c_k P_k, and R0 = R_nom exp([δθ_s]_x).
+
+    Sample-major (issue 15): all dynamic points advance one sample at a time (lanes), the Rodrigues series
+    (:func:`_rodrigues_into`, below 0.05 rad) for all of them, then its closed form for the few whose step
+    is larger — the same operations on every element as one point at a time
+    (:func:`_propagate_points_kernel`), so the same bits, without a branch and a call per point and sample.
+
+    X (S, n); R_nom (3, 3); w (L + 1, 3) rad/s; dt (L,) s; c_mag (L + 1,) mag interpolation weights (read
+    only when has_mag); dyn (S_d,) with dyn[0] = 0; o_g (S_d, 3), M_g (S_d, 3, 3); b_extra (S_d, L + 1, 3)
+    (read only when has_extra); dip_col the dip's column of X.
+    Returns R_end (S_d, 3, 3) = R0 P_L; f_body (S, 3) = mean_k (R0 P_k)ᵀ e_z; h_body (S, 3) =
+    (Σ_k c_k R0 P_k)ᵀ h_world(dip) with P_0 = I (zeros when not has_mag). Points outside dyn share the
+    mean's attitude history (row 0).
+    """
     S, Sd, L = X.shape[0], dyn.shape[0], dt.shape[0]
     Mt = np.empty((9, Sd))
     ot = np.empty((3, Sd))
@@ -210,6 +218,10 @@ def propagate_lanes_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: A
         u0 = w0 - ot[0, si]
         u1 = w1 - ot[1, si]
         u2 = w2 - ot[2, si]
+        if has_extra:
+            u0 -= b_extra[si, 0, 0]
+            u1 -= b_extra[si, 0, 1]
+            u2 -= b_extra[si, 0, 2]
         for i in range(3):
             om1[i, si] = Mt[3 * i, si] * u0 + Mt[3 * i + 1, si] * u1 + Mt[3 * i + 2, si] * u2
     for k in range(L):
@@ -223,6 +235,10 @@ def propagate_lanes_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: A
             u0 = w0 - ot[0, si]
             u1 = w1 - ot[1, si]
             u2 = w2 - ot[2, si]
+            if has_extra:
+                u0 -= b_extra[si, k + 1, 0]
+                u1 -= b_extra[si, k + 1, 1]
+                u2 -= b_extra[si, k + 1, 2]
             b0 = Mt[0, si] * u0 + Mt[1, si] * u1 + Mt[2, si] * u2
             b1 = Mt[3, si] * u0 + Mt[4, si] * u1 + Mt[5, si] * u2
             b2 = Mt[6, si] * u0 + Mt[7, si] * u1 + Mt[8, si] * u2

@@ -64,7 +64,6 @@ Array = NDArray[np.float64]
 _enabled = os.environ.get("ONLINECAL_FASTPATH", "1").strip() not in ("0", "false", "no", "off")
 _G0, _A0, _M0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["accel"].start, SENSOR_SLICE["mag"].start
 _EMPTY1 = np.zeros(1)
-_EMPTY3 = np.zeros((1, 1, 3))
 
 
 def enabled() -> bool:
@@ -216,8 +215,11 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     o_all, M_all, Mi_all = _model_pair_shared(p, Sd, Sd + S)
     o_g = o_all[:Sd].copy()
     M_g = M_all[:Sd].copy()
-    R_end, f_body, h_body = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, _EMPTY3, False,
-                                             dip_col)
+    # no extra offsets: a fresh (mutable) empty array and a run-time bool, the argument types the general path
+    # passes, so that numba compiles the kernel once, not again for a frozen global and a literal False (~2.5 s
+    # from an empty cache); the same for update_kernel's want_post below (~4.5 s per extra signature)
+    R_end, f_body, h_body = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, np.zeros((1, 1, 3)),
+                                             bool(False), dip_col)  # noqa: UP018 (a run-time bool: see above)
     err = rot_log_rel_kernel(R_end)
     for si in range(Sd):
         for k in range(3):
@@ -299,7 +301,7 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
             r[c + i] = var_mag
         gk[k] = gates[1]
     x, P, nis, status, _pz, _pP, ok = update_kernel(Y, x_pred, P_pred, z, Z, r, Wm, Wc, gated, droppable, gk,
-                                                    consider, damp, False)
+                                                    consider, damp, bool(False))  # noqa: UP018 (see predict_kernel)
     xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)
     return xs, Ps, nis, status, ok, R, fine
 
@@ -659,7 +661,7 @@ def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.int
         for j in range(n):
             Y[s, j] = X[s, j] - x0[j]
     x, P, nis, status, post_z, post_P, solved = update_kernel(Y, x0, P0, z, Z, r, Wm, Wc, gated, droppable, gk,
-                                                              consider, 0.0, True)
+                                                              consider, 0.0, bool(True))  # noqa: UP018 (predict_kernel)
     xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)
     return (True, xs, Ps, nis, status, post_z, post_P, solved, R, fine)
 

@@ -150,3 +150,106 @@ def test_the_compiled_fold_equals_fold_attitude(yaw_free: bool) -> None:
         assert math.isclose(float(u @ Ps[:3, :3] @ u), 0.5, rel_tol=1e-12)
     P[5, 5] = np.nan
     assert not fastpath.fold_kernel(x, P, R_nom, -1.0)[3]
+
+
+def _exactly_equal(a: OnlineCalibrator, b: OnlineCalibrator) -> None:
+    """The same bits: state, covariance, attitude, coverage, events, NIS bookkeeping, trace."""
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.P, b.P) and np.array_equal(a.R_nom, b.R_nom)
+    assert np.array_equal(a._coverage.max_rate, b._coverage.max_rate)
+    assert np.array_equal(a._coverage.angle, b._coverage.angle) and a._coverage.flight_s == b._coverage.flight_s
+    assert [(e["kind"], e["t"], e["detail"]) for e in a.events] == [(e["kind"], e["t"], e["detail"]) for e in b.events]
+    assert a._nis.stats == b._nis.stats
+    ra, rb = a.trace_rows(), b.trace_rows()
+    assert [list(r) for r in ra] == [list(r) for r in rb]  # the same columns; values NaN-aware (a NIS not yet seen)
+    assert np.array_equal([list(r.values()) for r in ra], [list(r.values()) for r in rb], equal_nan=True)
+
+
+@pytest.mark.parametrize("force_div_at", [None, 30.0])
+def test_one_call_per_block_equals_two_calls_bit_for_bit(force_div_at: float | None) -> None:
+    """motion_kernel (prediction, accel R, coverage, update and fold in one call) against predict_kernel +
+    update_fold_kernel with Python between them: a cold-started flight whose vehicle detector switches on
+    from the specific-force deviation (the block that switches it stops after the prediction and finishes
+    on the two-call path: its event comes before that block's update, as on the two-call path), with and
+    without a divergence forced in the NIS bookkeeping. Equal to the last bit."""
+    d = simulate("flight", 3, duration=50, imu_rate=200).data
+    calls = {"n": 0}
+    real = fastpath.update_fold_kernel
+
+    def counted(*a, **k):
+        calls["n"] += 1
+        return real(*a, **k)
+
+    fastpath.update_fold_kernel = counted  # (called from Python only where a merged call stopped early)
+    old = fastpath.set_merged(True)
+    try:
+        one, n_one = _run(d, "numba", True, force_div_at=force_div_at)
+        stopped = calls["n"]
+        fastpath.set_merged(False)
+        calls["n"] = 0
+        two, _ = _run(d, "numba", True, force_div_at=force_div_at)
+    finally:
+        fastpath.set_merged(old)
+        fastpath.update_fold_kernel = real  # type: ignore[assignment]
+    assert n_one["motion"] > 100 and calls["n"] == n_one["motion"]  # the two-call run: every motion block
+    assert 1 <= stopped < 5  # the merged run: only the block(s) whose prediction switched the detector
+    assert any(e["kind"] == "vehicle" and "specific-force" in e["detail"] for e in one.events)
+    if force_div_at is not None:
+        assert any(e["kind"] == "divergence" for e in one.events)
+    _exactly_equal(one, two)
+
+
+@pytest.mark.parametrize("has_mag, turn, extra", [(False, 1.0, False), (True, 1.0, False), (True, 60.0, False),
+                                                   (True, 1.0, True)])
+def test_the_sample_major_propagation_equals_the_point_major_loop(has_mag: bool, turn: float, extra: bool) -> None:
+    """propagate_kernel (all dynamic sigma points one sample at a time, the Rodrigues series for all and its
+    closed form where a step reaches 0.05 rad) against the point-at-a-time loop it replaced
+    (_propagate_points_kernel): the same bits, for slow turns (series only), fast ones (×60: 6–12 rad/s, both
+    forms), with the mag's interpolation weights and with extra gyro offsets (the general path's)."""
+    from onlinecal.ukf.kernels_propagate import _propagate_points_kernel, propagate_kernel
+    from onlinecal.ukf.kernels_update import sigma_points_kernel
+
+    rng = np.random.default_rng(11 + int(has_mag) + int(turn) + 5 * int(extra))
+    n, L = 40, 20
+    A = rng.normal(size=(n, n)) * 0.05
+    P = A @ A.T + np.eye(n) * 1e-4
+    x = np.zeros(n)
+    x[3:15] = np.r_[rng.normal(0, 0.01, 3), 1 + rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 6)]
+    X, ok = sigma_points_kernel(x, P, 1.5, np.arange(n, dtype=np.intp))
+    assert ok
+    dyn = np.arange(0, 31, dtype=np.intp)
+    o_g = X[dyn, 3:6].copy()
+    M_g = np.stack([np.diag(X[s, 6:9]) + 0.01 * rng.normal(size=(3, 3)) for s in dyn])
+    w = rng.normal(0, 0.1, (L + 1, 3)) * turn
+    dt = np.full(L, 0.005) + rng.normal(0, 1e-5, L)
+    c_mag = rng.random(L + 1) if has_mag else np.zeros(1)
+    b_extra = rng.normal(0, 0.01, (dyn.size, L + 1, 3)) if extra else np.zeros((1, 1, 3))
+    R_nom = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    ref = _propagate_points_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, b_extra, extra, 39)
+    new = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, b_extra, extra, 39)
+    for r, v in zip(ref, new, strict=True):
+        assert np.array_equal(r, v)
+
+
+def test_the_compiled_third_difference_median_equals_the_numpy_one() -> None:
+    """third_diff_var on the numba backend (each segment's windows sorted on their own) against the numpy
+    reference (one sort of the whole feed by segment and value): the same bits, on blocks with dropped
+    samples (windows across a gap left out), too few windows (NaN), NaN readings and a constant reading."""
+    from onlinecal.ukf.blocks import third_diff_var
+
+    rng = np.random.default_rng(5)
+    N = 4000
+    t = np.cumsum(np.full(N, 0.005))
+    keep = rng.random(N) > 0.05  # dropped samples: some windows span a gap
+    t = t[keep]
+    v = rng.normal(0, 0.01, (t.size, 3)) + np.sin(t)[:, None]
+    v[100:103] = np.nan
+    v[500:540] = 1.0
+    seg = np.minimum(np.arange(t.size) // 19, 10_000).astype(np.intp)
+    seg[seg >= 150] += 1  # an empty segment
+    n_seg = int(seg[-1]) + 3
+    with kernels.use_backend("numpy"):
+        ref = third_diff_var(v, t, seg, n_seg)
+    with kernels.use_backend("numba"):
+        new = third_diff_var(v, t, seg, n_seg)
+    assert np.isnan(ref).sum() >= 3 and np.isfinite(ref).sum() > 100
+    assert np.array_equal(ref, new, equal_nan=True)

@@ -1,39 +1,45 @@
-"""The filter step of an ordinary block in compiled calls (issue 15): a motion block in two, a rest block's
-update in one — the largest pieces of the per-block Python that could be moved into numba in this round.
+"""The filter step of an ordinary block in compiled calls (issue 15): a motion block in one, a rest block's
+update in one — the largest pieces of the per-block Python that could be moved into numba so far.
 
 :func:`.step.motion_step` on the numba backend makes, per block, some forty small numpy and kernel calls
 (sigma points, sensor models, propagation, attitude errors, process noise, moments, the vehicle
 deviation, measurements, update, attitude fold, heading marginalisation, checks). For a block without
 model extensions and without a gyro hold offset (the ordinary case), :func:`motion_step_fast` replaces them by
+one call of :func:`motion_kernel`, which runs
 
 1. :func:`predict_kernel` — sigma points (:func:`.kernels_update.sigma_points_kernel`), eqs. 1–6 for the
-   dynamic points' gyro and every point's accel and mag (:func:`.kernels_propagate.model_pair_kernel`),
-   the propagation (:func:`.kernels_propagate.propagate_kernel`), the attitude errors
+   dynamic points' gyro and every point's accel and (where the block uses it) mag
+   (:func:`.kernels_propagate.model_pair_kernel`), the propagation
+   (:func:`.kernels_propagate.propagate_kernel`), the attitude errors
    (:func:`.kernels_propagate.rot_log_rel_kernel`), the block's process noise
    (:func:`.predict.block_process_noise` with :func:`.noise.bilinear_var`), the unscented moments
    (:func:`.kernels_update.unscented_kernel`), the mean's turn rate and the quasi-static deviation of the
    specific force (:meth:`.measurements.AccelModel.deviation`);
-2. :func:`update_fold_kernel` — the motion measurements (:func:`.measurements.motion_measurements`: the
-   accel's quasi-static R, h(x) of accel and mag), the gated update
-   (:func:`.kernels_update.update_kernel`) and the USQUE fold of the posterior
-   (:func:`.attitude_init.fold_attitude`, :func:`.attitude_init.set_yaw_variance`) with its finiteness check.
+2. the motion coverage's maxima and turned angles (:meth:`.vehicle.MotionCoverage.add_motion`) and the
+   accel's quasi-static R (with the vehicle's var_v, which Python decides before the call);
+3. :func:`update_fold_kernel` — the motion measurements (:func:`.measurements.motion_measurements`: h(x) of
+   accel and mag), the gated update (:func:`.kernels_update.update_kernel`) and the USQUE fold of the
+   posterior (:func:`.attitude_init.fold_attitude`, :func:`.attitude_init.set_yaw_variance`) with its
+   finiteness check.
 
-Between the two, Python keeps what has state and events: the vehicle detector, the motion coverage, and
-after the second the NIS bookkeeping (:func:`.step.gated_update`'s loop: windows, divergence) and the
-commit's trace. A rest block (:func:`.step.rest_step`) keeps its running means and NIS in Python and hands
-the update to :func:`rest_update_kernel` (sigma points, :func:`.measurements.rest_measurements`, the static
-update with the posterior's predicted measurements, the fold). The kernels called are those the numba path
-already uses, so the results equal it to rounding (and the numpy reference within 1e-9 relative:
-``tests/test_speed_fastpath.py``). Blocks with model extensions, a motion block with a held gyro reading or
-with a clipped accel and no magnetometer, and everything on the numpy backend take the general path.
-``ONLINECAL_FASTPATH=0`` (or :func:`set_enabled`) turns the fast path off.
+A block whose specific-force deviation would switch the vehicle detector on (an event, and a new var_v)
+stops after 1 and finishes as two calls, the detector between them, as before (:func:`set_merged` ``False``
+takes the two calls for every block: the same bits). After the call Python keeps what has state and events:
+the NIS bookkeeping (:func:`.step.gated_update`'s loop: windows, divergence) and the commit's trace. A rest
+block (:func:`.step.rest_step`) keeps its running means and NIS in Python and hands the update to
+:func:`rest_update_kernel` (sigma points, :func:`.measurements.rest_measurements`, the static update with
+the posterior's predicted measurements, the fold). The kernels called do the numba path's arithmetic, so the
+results equal it to rounding (and the numpy reference within 1e-9 relative: ``tests/test_speed_fastpath.py``).
+Blocks with model extensions, a motion block with a held gyro reading or with a clipped accel and no
+magnetometer, and everything on the numpy backend take the general path. ``ONLINECAL_FASTPATH=0`` (or
+:func:`set_enabled`) turns the fast path off.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,7 +64,6 @@ Array = NDArray[np.float64]
 _enabled = os.environ.get("ONLINECAL_FASTPATH", "1").strip() not in ("0", "false", "no", "off")
 _G0, _A0, _M0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["accel"].start, SENSOR_SLICE["mag"].start
 _EMPTY1 = np.zeros(1)
-_EMPTY3 = np.zeros((1, 1, 3))
 
 
 def enabled() -> bool:
@@ -186,9 +191,9 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     first columns; dip_col the dip's.
 
     Returns (ok: P positive definite, the propagated sigma points X (S, n), x_pred (n,), Y (S, n),
-    P_pred (n, n), R_end of the mean (3, 3),
-    f_body (S, 3), h_body (S, 3), sens_o (2S, 3), sens_Minv (2S, 3, 3) of accel then mag, ω of the mean
-    (3,) rad/s, the specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
+    P_pred (n, n), R_end of the mean (3, 3), f_body (S, 3), h_body (S, 3), sens_o (2S, 3), sens_Minv
+    (2S, 3, 3) of accel then mag (S rows, the accel's, without has_mag), ω of the mean (3,) rad/s, the
+    specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
     """
     X, ok = sigma_points_kernel(x, P, scale, order)
     S, Sd = X.shape[0], dyn.shape[0]
@@ -196,19 +201,25 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
         z3 = np.zeros((1, 3))
         return (False, X, x.copy(), X.copy(), P.copy(), R_nom.copy(), z3, z3.copy(), z3.copy(), np.zeros((1, 3, 3)),
                 np.zeros(3), 0.0)
-    p = np.empty((Sd + 2 * S, 12))
+    # the mag's model only where the block uses it (its rows are read by the mag update alone: a log whose
+    # magnetometer is not yet started — or has none — skips them, up to half the sensor-model trigonometry)
+    p = np.empty((Sd + (2 * S if has_mag else S), 12))
     for si in range(Sd):
         for k in range(12):
             p[si, k] = X[dyn[si], g0 + k]
     for s in range(S):
         for k in range(12):
             p[Sd + s, k] = X[s, a0 + k]
-            p[Sd + S + s, k] = X[s, m0 + k]
+            if has_mag:
+                p[Sd + S + s, k] = X[s, m0 + k]
     o_all, M_all, Mi_all = _model_pair_shared(p, Sd, Sd + S)
     o_g = o_all[:Sd].copy()
     M_g = M_all[:Sd].copy()
-    R_end, f_body, h_body = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, _EMPTY3, False,
-                                             dip_col)
+    # no extra offsets: a fresh (mutable) empty array and a run-time bool, the argument types the general path
+    # passes, so that numba compiles the kernel once, not again for a frozen global and a literal False (~2.5 s
+    # from an empty cache); the same for update_kernel's want_post below (~4.5 s per extra signature)
+    R_end, f_body, h_body = propagate_kernel(X, R_nom, w, dt, c_mag, has_mag, dyn, o_g, M_g, np.zeros((1, 1, 3)),
+                                             bool(False), dip_col)  # noqa: UP018 (a run-time bool: see above)
     err = rot_log_rel_kernel(R_end)
     for si in range(Sd):
         for k in range(3):
@@ -290,9 +301,58 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
             r[c + i] = var_mag
         gk[k] = gates[1]
     x, P, nis, status, _pz, _pP, ok = update_kernel(Y, x_pred, P_pred, z, Z, r, Wm, Wc, gated, droppable, gk,
-                                                    consider, damp, False)
+                                                    consider, damp, bool(False))  # noqa: UP018 (see predict_kernel)
     xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)
     return xs, Ps, nis, status, ok, R, fine
+
+
+@_njit
+def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
+                  c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
+                  q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float, gravity: float,
+                  g0: int, a0: int, m0: int, dip_col: int, dev_bail: float, use_acc: bool, dev_gain: float,
+                  lever_m: float, var_v: float, z_mag: Array, var_mag: float, hold_acc: int, hold_mag: int,
+                  gates: Array, consider: NDArray[np.bool_], damp: float, yaw_var: float, max_rate: Array,
+                  angle: Array, two: float) -> tuple[Any, ...]:
+    """One ordinary motion block in one call: :func:`predict_kernel`, the accel's quasi-static R
+    (:meth:`.measurements.AccelModel.variance`'s terms, with the vehicle's ``var_v`` — an input: Python decides
+    it), the motion coverage (:meth:`.vehicle.MotionCoverage.add_motion`'s maxima and turned angles, in place
+    in max_rate (3,) and angle (3,) rad/s, rad), then :func:`update_fold_kernel`.
+
+    Arguments as the two kernels'; ``dev_bail`` m/s²: a specific-force deviation above it is an event Python
+    must see before the update (the vehicle detector switching on, which changes var_v): the call then
+    stops after the prediction. ``two`` = 2.0, passed at run time so that the squares are libm's ``pow``
+    as in the Python they replace (a constant exponent compiles to x·x, which differs in the last bit for
+    about one value in a thousand).
+
+    Returns (stage: 0 P not positive definite, 1 stopped after the prediction, 2 done; the prediction
+    (X, x_pred, Y, P_pred, f_body, h_body, sens_o, sens_Minv: None at stage 2), R_end of the mean (3, 3), ω
+    of the mean (3,) (None at stage 2), the deviation; the update (x, P, NIS, status, solved, R, fine: None,
+    True, None, False before stage 2)) — see the two kernels. (None, not placeholder arrays: each array
+    returned costs its boxing, ~0.5 µs.)
+    """
+    ok, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
+        x, P, scale, order, R_nom, w, dt, c_mag, has_mag, dyn, Wm, Wc, q, q_att_jerk, dt_blk, w_mean, a_mean,
+        sig_mean, gravity, g0, a0, m0, dip_col)
+    if not ok or dev > dev_bail:
+        return (1 if ok else 0, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev, None, None, None,
+                None, True, None, False)
+    rate = math.sqrt(np.dot(om, om))  # (BLAS ddot, as np.dot in Python: the same bits)
+    for i in range(3):  # MotionCoverage.add_motion: np.maximum (NaN wins), ∫|ω_i| dt
+        r = abs(om[i])
+        m = max_rate[i]
+        max_rate[i] = r if (r > m or r != r) else m
+        angle[i] = angle[i] + r * dt_blk
+    var_a = 0.0
+    if use_acc:
+        var_a = math.pow(sig_mean, two) + math.pow(dev_gain * dev, two) + 2.0 * gravity * dev
+        if rate != 0.0:
+            var_a = var_a + math.pow(lever_m * math.pow(rate, two), two)
+        var_a += var_v
+    xs, Ps, nis, status, solved, R_new, fine = update_fold_kernel(
+        X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, z_mag, has_mag, var_mag, hold_acc,
+        hold_mag, gravity, Wm, Wc, gates, consider, damp, R0, yaw_var)
+    return (2, None, None, None, None, R0, None, None, None, None, None, dev, xs, Ps, nis, status, solved, R_new, fine)
 
 
 @_njit
@@ -365,12 +425,26 @@ def _hold_col(cal: OnlineCalibrator, sensor: str, held: dict[str, bool]) -> int:
     return -1 if sl is None else int(sl.start)
 
 
+def set_merged(on: bool) -> bool:
+    """One compiled call per ordinary motion block (:func:`motion_kernel`, the default) or two
+    (:func:`predict_kernel`, :func:`update_fold_kernel`: what a block whose prediction raises an event takes);
+    returns the previous setting (tests compare both: the same bits)."""
+    global _merged
+    old, _merged = _merged, bool(on)
+    return old
+
+
+_merged = True
+_TWO = 2.0  # the squares' exponent, a run-time value in the kernels (see motion_kernel)
+
+
 def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float],
                      held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
     """:func:`.step.motion_step` for a block where :func:`applies`: the same steps, in the same order, with
-    the arithmetic in :func:`predict_kernel` and :func:`update_fold_kernel`."""
-    from .step import commit_folded, earth_rate_q, gated_bookkeeping, vehicle_accel_from_dev  # (step imports this)
-
+    the arithmetic in :func:`motion_kernel` (one call), or, where the prediction raises an event Python
+    must see first (the vehicle detector switching on), in :func:`predict_kernel` and
+    :func:`update_fold_kernel` with the detector between them."""
+    st = _step_module()
     c = cal.config
     tl = float(t[-1])
     i, j = int(B.lo[b]), int(B.hi[b])
@@ -382,7 +456,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
     dt_blk = float(t[-1] - cal._t_last)
     s_g = n["gyro"]
-    q = earth_rate_q(cal, cal._process_noise(dt_blk, s_g), dt_blk)
+    q = st.earth_rate_q(cal, cal._process_noise(dt_blk, s_g), dt_blk)
     jerk = 0.0
     if L >= 2:
         noise = float(B.jerk_n[b]) * 6.0 * (s_g * dt_blk / L / 4) ** 2
@@ -393,48 +467,97 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
     sig_mean = n["accel"] / math.sqrt(t.size)
     a_mean = B.a_mean[b]
-    ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
-        cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
-        lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
-        _G0, _A0, _M0, DIP)
-    if not ok:
-        cal._diverged("covariance is not positive definite", tl)
-        return
-    cal.R_nom = R_end0
+    use_acc = not clip["accel"]
+    n_m = int(B.mhi[b] - B.mlo[b])
+    var_mag = n["mag"] ** 2 / max(n_m, 1)
+    yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
+    gates = np.array([cal._gates["accel"], cal._gates["mag"]])
+    hold_a, hold_m = _hold_col(cal, "accel", held), _hold_col(cal, "mag", held)
+    mod = cal._models.acc
+    veh = cal._vehicle
+    if _merged:
+        # var_v as the detector stands; a deviation that would switch it on stops the call after the prediction
+        var_v = st.vehicle_accel_now(cal, dt_blk)
+        feed = c.vehicle == "auto" and not veh.active  # (vehicle_accel_from_dev feeds the detector then)
+        cov = cal._coverage
+        (stage, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev, x, P, nis, status, solved,
+         R_new, fine) = motion_kernel(
+            cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
+            mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates, lay.consider,
+            float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
+        if stage == 0:
+            cal._diverged("covariance is not positive definite", tl)
+            return
+        cal.R_nom = R_end0
+        if stage == 2:
+            if feed:  # the detector's run of blocks (dev ≤ dev_bail: it stays off, var_v stands; a var_v that
+                # depended on the prediction would break the one call: tests/test_speed_fastpath.py compares it
+                # with the two calls bit for bit on a flight whose detector switches on)
+                st.vehicle_accel_from_dev(cal, dev, dt_blk, tl)
+            if veh.active:  # (MotionCoverage.add_motion's flight time; its maxima and angles in the kernel)
+                cov.flight_s += dt_blk
+            if use_mag:
+                cov.add_field(calibrated(cal, "mag", B.m_mean[b]))
+            _finish_motion(cal, st, x, P, nis, status, solved, R_new, fine, use_acc, has_mag, var_v, tl)
+            return
+    else:
+        ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
+            cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            _G0, _A0, _M0, DIP)
+        if not ok:
+            cal._diverged("covariance is not positive definite", tl)
+            return
+        cal.R_nom = R_end0
+    # two calls: the vehicle detector (and any event it raises) between the prediction and the update
     rate = math.sqrt(float(np.dot(om, om)))  # (np.linalg.norm's arithmetic, without its checks)
-    var_v = vehicle_accel_from_dev(cal, dev, dt_blk, tl)
-    cal._coverage.add_motion(om, dt_blk, cal._vehicle.active)
+    var_v = st.vehicle_accel_from_dev(cal, dev, dt_blk, tl)
+    cal._coverage.add_motion(om, dt_blk, veh.active)
     if use_mag:
         cal._coverage.add_field(calibrated(cal, "mag", B.m_mean[b]))
-    use_acc = not clip["accel"]
     var_a = 0.0
     if use_acc:
-        mod = cal._models.acc
         g = mod.gravity
         var_a = sig_mean**2 + (mod.dev_gain * dev) ** 2 + 2.0 * g * dev
         if rate:
             var_a = var_a + (mod.lever_m * rate**2) ** 2
         var_a += var_v
-    n_m = int(B.mhi[b] - B.mlo[b])
-    var_mag = n["mag"] ** 2 / max(n_m, 1)
-    yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
-    k_div = cal._div.count
-    k_v = var_v / c.vehicle_accel_sigma**2 if var_v > 0 else 0.0
-    gates = np.array([cal._gates["accel"], cal._gates["mag"]])
     x, P, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
-        _hold_col(cal, "accel", held), _hold_col(cal, "mag", held), c.gravity, cal._Wm, cal._Wc, gates,
-        lay.consider, float(c.update_damping), cal.R_nom, yaw)
+        hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
+    _finish_motion(cal, st, x, P, nis, status, solved, R_new, fine, use_acc, has_mag, var_v, tl)
+
+
+def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, nis: Array, status: NDArray[np.int64],
+                   solved: bool, R_new: Array, fine: bool, use_acc: bool, has_mag: bool, var_v: float,
+                   tl: float) -> None:
+    """The end of a motion block after its update: the NIS bookkeeping (windows, divergence) and the commit."""
     if not solved:
         raise np.linalg.LinAlgError("Singular matrix")
+    k_div = cal._div.count
+    k_v = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
     res = UpdateResult(x, P)
     names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
     for k, s in enumerate(names):
         if status[k] >= 0:
             res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
-    gated_bookkeeping(cal, res, tl, True, k_v)
+    st.gated_bookkeeping(cal, res, tl, True, k_v)
     if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands
-        commit_folded(cal, R_new, x, P, fine, tl)
+        st.commit_folded(cal, R_new, x, P, fine, tl)
+
+
+_STEP: list[Any] = []
+
+
+def _step_module() -> Any:
+    """:mod:`.step` (which imports this module: looked up once, at the first block)."""
+    if not _STEP:
+        from . import step
+
+        _STEP.append(step)
+    return _STEP[0]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -465,11 +588,12 @@ def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.int
     if not ok:
         return (False, x0.copy(), P0.copy(), np.zeros(nb), np.full(nb, -1, np.int64), np.zeros((nb, 3)),
                 np.zeros((nb, 3, 3)), True, R_nom.copy(), False)
-    p = np.empty((2 * S, 12))
+    p = np.empty(((2 * S if has_mag else S), 12))  # the mag's rows only where the rest has mag samples
     for s in range(S):
         for k in range(12):
             p[s, k] = X[s, a0 + k]
-            p[S + s, k] = X[s, m0 + k]
+            if has_mag:
+                p[S + s, k] = X[s, m0 + k]
     o, M, Mi = _model_pair_shared(p, S, 2 * S)
     Rs = np.empty((S, 3, 3))
     Rd = np.empty((3, 3))
@@ -537,7 +661,7 @@ def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.int
         for j in range(n):
             Y[s, j] = X[s, j] - x0[j]
     x, P, nis, status, post_z, post_P, solved = update_kernel(Y, x0, P0, z, Z, r, Wm, Wc, gated, droppable, gk,
-                                                              consider, 0.0, True)
+                                                              consider, 0.0, bool(True))  # noqa: UP018 (predict_kernel)
     xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)
     return (True, xs, Ps, nis, status, post_z, post_P, solved, R, fine)
 
@@ -553,8 +677,7 @@ def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0:
     """The end of :func:`.step.rest_step` (sigma points, rest measurements, the gated update, its NIS
     bookkeeping, the fold and commit) with the arithmetic in :func:`rest_update_kernel`; ``k_div`` the
     divergence count before the block, ``first`` whether the rest began with this block (its NIS recorded)."""
-    from .step import commit_folded, gated_bookkeeping  # (step imports this module)
-
+    st = _step_module()
     c = cal.config
     lay = cal.lay
     nst = lay.n
@@ -588,7 +711,7 @@ def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0:
         res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
         if status[k] != 2:
             res.post[s] = (post_z[k], post_P[k])
-    gated_bookkeeping(cal, res, tl, first, 0.0)
+    st.gated_bookkeeping(cal, res, tl, first, 0.0)
     acc.post = res.post
     if cal._div.count == k_div:  # a divergence in the update also ended the running rest
-        commit_folded(cal, R_new, x, P, fine, tl)
+        st.commit_folded(cal, R_new, x, P, fine, tl)

@@ -127,20 +127,14 @@ def _share_mean(X: Array, dyn: NDArray[np.intp], f_body: Array, h_body: Array, Q
 
 
 @_njit
-def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, has_mag: bool,
-                     dyn: NDArray[np.intp], o_g: Array, M_g: Array, b_extra: Array, has_extra: bool,
-                     dip_col: int) -> tuple[Array, Array, Array]:
-    """Attitude of every dynamic sigma point through one block of L IMU samples, with the block means the
-    measurements need; the loop form of :func:`onlinecal.ukf.propagate.propagate_block_numpy`. Per dynamic
-    sigma point s (the mean first): rates (:func:`_calibrated_rates`), running product P_k
-    (:func:`_integrate`), R0 = R_nom exp([δθ_s]_x).
-
-    X (S, n); R_nom (3, 3); w (L + 1, 3) rad/s; dt (L,) s; c_mag (L + 1,) mag interpolation weights (read
-    only when has_mag); dyn (S_d,) with dyn[0] = 0; o_g (S_d, 3), M_g (S_d, 3, 3); b_extra (S_d, L + 1, 3)
-    (read only when has_extra); dip_col the dip's column of X.
-    Returns R_end (S_d, 3, 3) = R0 P_L; f_body (S, 3) = mean_k (R0 P_k)ᵀ e_z; h_body (S, 3) =
-    (Σ_k c_k R0 P_k)ᵀ h_world(dip) with P_0 = I (zeros when not has_mag). Points outside dyn share the
-    mean's attitude history (row 0).
+def _propagate_points_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, has_mag: bool,
+                             dyn: NDArray[np.intp], o_g: Array, M_g: Array, b_extra: Array, has_extra: bool,
+                             dip_col: int) -> tuple[Array, Array, Array]:
+    """:func:`propagate_kernel` one dynamic sigma point at a time (its form before issue 15's sixth round),
+    kept as the reference of its order of operations: tests/test_speed_fastpath.py compares the two bit for
+    bit (compiled on first use: production never calls it). Per dynamic sigma point s (the mean first):
+    rates (:func:`_calibrated_rates`), running product P_k (:func:`_integrate`), R0 = R_nom exp([δθ_s]_x).
+    Arguments and returns as :func:`propagate_kernel`.
     """
     S, Sd, L = X.shape[0], dyn.shape[0], dt.shape[0]
     R_end = np.empty((Sd, 3, 3))
@@ -165,6 +159,161 @@ def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, 
             f_body[s, j] = (R0[2, 0] * Ps[0, j] + R0[2, 1] * Ps[1, j] + R0[2, 2] * Ps[2, j]) * inv_L
         if has_mag:
             _mul33(R0, Pm, Q)
+            cd, sd = math.cos(X[s, dip_col]), math.sin(X[s, dip_col])
+            for j in range(3):
+                h_body[s, j] = cd * Q[1, j] - sd * Q[2, j]
+            if si == 0:
+                for i in range(3):
+                    for j in range(3):
+                        Q0[i, j] = Q[i, j]
+    _share_mean(X, dyn, f_body, h_body, Q0, has_mag, dip_col)
+    return R_end, f_body, h_body
+
+
+@_njit
+def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, has_mag: bool,
+                     dyn: NDArray[np.intp], o_g: Array, M_g: Array, b_extra: Array, has_extra: bool,
+                     dip_col: int) -> tuple[Array, Array, Array]:
+    """Attitude of every dynamic sigma point through one block of L IMU samples, with the block means the
+    measurements need; the loop form of :func:`onlinecal.ukf.propagate.propagate_block_numpy`. Per dynamic
+    sigma point s (the mean first): rates ω_k = M_g,s (w_k − o_g,s − b_s,k) (eq. 1 on the gyro), the running
+    product P_k = P_k−1 exp([Δθ_k]_x) (P_0 = I) over the samples, Δθ_k = ½(ω_k−1 + ω_k)Δt_k + Δt_k²/12
+    ω_k−1 × ω_k (trapezoid + two-sample coning), its sums Σ_k P_k and Σ_k c_k P_k, and R0 = R_nom exp([δθ_s]_x).
+
+    Sample-major (issue 15): all dynamic points advance one sample at a time (lanes), the Rodrigues series
+    (:func:`_rodrigues_into`, below 0.05 rad) for all of them, then its closed form for the few whose step
+    is larger — the same operations on every element as one point at a time
+    (:func:`_propagate_points_kernel`), so the same bits, without a branch and a call per point and sample.
+
+    X (S, n); R_nom (3, 3); w (L + 1, 3) rad/s; dt (L,) s; c_mag (L + 1,) mag interpolation weights (read
+    only when has_mag); dyn (S_d,) with dyn[0] = 0; o_g (S_d, 3), M_g (S_d, 3, 3); b_extra (S_d, L + 1, 3)
+    (read only when has_extra); dip_col the dip's column of X.
+    Returns R_end (S_d, 3, 3) = R0 P_L; f_body (S, 3) = mean_k (R0 P_k)ᵀ e_z; h_body (S, 3) =
+    (Σ_k c_k R0 P_k)ᵀ h_world(dip) with P_0 = I (zeros when not has_mag). Points outside dyn share the
+    mean's attitude history (row 0).
+    """
+    S, Sd, L = X.shape[0], dyn.shape[0], dt.shape[0]
+    Mt = np.empty((9, Sd))
+    ot = np.empty((3, Sd))
+    for si in range(Sd):
+        for i in range(3):
+            ot[i, si] = o_g[si, i]
+            for j in range(3):
+                Mt[3 * i + j, si] = M_g[si, i, j]
+    om0 = np.empty((3, Sd))
+    om1 = np.empty((3, Sd))
+    P = np.empty((9, Sd))
+    Ps = np.zeros((9, Sd))
+    Pm = np.empty((9, Sd))
+    th = np.empty((6, Sd))  # per lane: the step θ (3), |θ|², s = sin a / a, c = (1 − cos a)/a²
+    c0 = c_mag[0] if has_mag else 0.0
+    for e in range(9):
+        diag = e == 0 or e == 4 or e == 8
+        for si in range(Sd):
+            P[e, si] = 1.0 if diag else 0.0
+            Pm[e, si] = (c0 if diag else 0.0) if has_mag else 0.0
+    # ω_k = M_g (w_k − o_g) (:func:`_calibrated_rates`), sample 0; then per sample the next and the step
+    w0, w1, w2 = w[0, 0], w[0, 1], w[0, 2]
+    for si in range(Sd):
+        u0 = w0 - ot[0, si]
+        u1 = w1 - ot[1, si]
+        u2 = w2 - ot[2, si]
+        if has_extra:
+            u0 -= b_extra[si, 0, 0]
+            u1 -= b_extra[si, 0, 1]
+            u2 -= b_extra[si, 0, 2]
+        for i in range(3):
+            om1[i, si] = Mt[3 * i, si] * u0 + Mt[3 * i + 1, si] * u1 + Mt[3 * i + 2, si] * u2
+    for k in range(L):
+        om0, om1 = om1, om0
+        w0, w1, w2 = w[k + 1, 0], w[k + 1, 1], w[k + 1, 2]
+        h = dt[k]
+        hc = h * h / 12.0
+        hh = 0.5 * h
+        ck = c_mag[k + 1] if has_mag else 0.0
+        for si in range(Sd):
+            u0 = w0 - ot[0, si]
+            u1 = w1 - ot[1, si]
+            u2 = w2 - ot[2, si]
+            if has_extra:
+                u0 -= b_extra[si, k + 1, 0]
+                u1 -= b_extra[si, k + 1, 1]
+                u2 -= b_extra[si, k + 1, 2]
+            b0 = Mt[0, si] * u0 + Mt[1, si] * u1 + Mt[2, si] * u2
+            b1 = Mt[3, si] * u0 + Mt[4, si] * u1 + Mt[5, si] * u2
+            b2 = Mt[6, si] * u0 + Mt[7, si] * u1 + Mt[8, si] * u2
+            om1[0, si] = b0
+            om1[1, si] = b1
+            om1[2, si] = b2
+            a0, a1, a2 = om0[0, si], om0[1, si], om0[2, si]
+            tx = hh * (a0 + b0) + hc * (a1 * b2 - a2 * b1)
+            ty = hh * (a1 + b1) + hc * (a2 * b0 - a0 * b2)
+            tz = hh * (a2 + b2) + hc * (a0 * b1 - a1 * b0)
+            q2 = tx * tx + ty * ty + tz * tz
+            th[0, si] = tx
+            th[1, si] = ty
+            th[2, si] = tz
+            th[3, si] = q2
+            th[4, si] = 1.0 - q2 / 6.0 + q2 * q2 / 120.0
+            th[5, si] = 0.5 - q2 / 24.0 + q2 * q2 / 720.0
+        for si in range(Sd):
+            q2 = th[3, si]
+            if not q2 < 0.0025:
+                a = math.sqrt(q2)
+                th[4, si] = math.sin(a) / a
+                hs = math.sin(0.5 * a) / (0.5 * a)
+                th[5, si] = 0.5 * hs * hs
+        for si in range(Sd):
+            x, y, z, q2, s, c = th[0, si], th[1, si], th[2, si], th[3, si], th[4, si], th[5, si]
+            d = 1.0 - c * q2
+            r00 = d + c * x * x
+            r11 = d + c * y * y
+            r22 = d + c * z * z
+            cxy, cxz, cyz = c * x * y, c * x * z, c * y * z
+            r01 = cxy - s * z
+            r10 = cxy + s * z
+            r02 = cxz + s * y
+            r20 = cxz - s * y
+            r12 = cyz - s * x
+            r21 = cyz + s * x
+            for i in range(3):
+                p0, p1, p2 = P[3 * i, si], P[3 * i + 1, si], P[3 * i + 2, si]
+                n0 = p0 * r00 + p1 * r10 + p2 * r20
+                n1 = p0 * r01 + p1 * r11 + p2 * r21
+                n2 = p0 * r02 + p1 * r12 + p2 * r22
+                P[3 * i, si] = n0
+                P[3 * i + 1, si] = n1
+                P[3 * i + 2, si] = n2
+                Ps[3 * i, si] += n0
+                Ps[3 * i + 1, si] += n1
+                Ps[3 * i + 2, si] += n2
+                Pm[3 * i, si] += ck * n0
+                Pm[3 * i + 1, si] += ck * n1
+                Pm[3 * i + 2, si] += ck * n2
+    R_end = np.empty((Sd, 3, 3))
+    f_body = np.empty((S, 3))
+    h_body = np.zeros((S, 3))
+    Q0 = np.zeros((3, 3))
+    R0, Rd, Q = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    Pk, Psk, Pmk = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    inv_L = 1.0 / L
+    for si in range(Sd):
+        s = dyn[si]
+        for i in range(3):
+            for j in range(3):
+                Pk[i, j] = P[3 * i + j, si]
+                Psk[i, j] = Ps[3 * i + j, si]
+                Pmk[i, j] = Pm[3 * i + j, si]
+        _rodrigues_into(X[s, 0], X[s, 1], X[s, 2], Rd)
+        _mul33(R_nom, Rd, R0)
+        _mul33(R0, Pk, Rd)
+        for i in range(3):
+            for j in range(3):
+                R_end[si, i, j] = Rd[i, j]
+        for j in range(3):
+            f_body[s, j] = (R0[2, 0] * Psk[0, j] + R0[2, 1] * Psk[1, j] + R0[2, 2] * Psk[2, j]) * inv_L
+        if has_mag:
+            _mul33(R0, Pmk, Q)
             cd, sd = math.cos(X[s, dip_col]), math.sin(X[s, dip_col])
             for j in range(3):
                 h_body[s, j] = cd * Q[1, j] - sd * Q[2, j]

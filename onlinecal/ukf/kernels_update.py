@@ -126,27 +126,27 @@ def innovation_kernel(Y: Array, Z: Array, z: Array, Wm: Array, Wc: Array, r_diag
             zi = Z[s, i] - z_pred[i]
             for j in range(i, m):
                 S_zz[i, j] += zi * Zc[s, j]
-    # Pxz[i, j] = Σ_s Y[s, i] Zc[s, j], s ascending, two rows i at once (issue 15): each entry's sum in a
-    # register in its own order (the same bits as accumulating it in place over s, the loop this replaces)
-    acc = np.empty((2, m))
-    i = 0
-    while i < n:
-        two = i + 1 < n
-        for j in range(m):
-            acc[0, j] = 0.0
-            acc[1, j] = 0.0
-        for s in range(S):
-            y0 = Y[s, i]
-            y1 = Y[s, i + 1] if two else 0.0
-            for j in range(m):
+    # Pxz[i, j] = Σ_s Y[s, i] Zc[s, j], s ascending from 0: four rows i at once, each sum in a register of its own
+    # (issue 15: the same bits as accumulating in place over s; in place, every addition waited on the store of
+    # the one before, and this loop was two thirds of an accel-only update)
+    for j in range(m):
+        i = 0
+        while i + 3 < n:
+            a0 = a1 = a2 = a3 = 0.0
+            for s in range(S):
                 zc = Zc[s, j]
-                acc[0, j] += y0 * zc
-                acc[1, j] += y1 * zc
-        for j in range(m):
-            Pxz[i, j] = acc[0, j]
-            if two:
-                Pxz[i + 1, j] = acc[1, j]
-        i += 2
+                a0 += Y[s, i] * zc
+                a1 += Y[s, i + 1] * zc
+                a2 += Y[s, i + 2] * zc
+                a3 += Y[s, i + 3] * zc
+            Pxz[i, j], Pxz[i + 1, j], Pxz[i + 2, j], Pxz[i + 3, j] = a0, a1, a2, a3
+            i += 4
+        while i < n:
+            a0 = 0.0
+            for s in range(S):
+                a0 += Y[s, i] * Zc[s, j]
+            Pxz[i, j] = a0
+            i += 1
     hph = np.empty(m)
     for i in range(m):
         hph[i] = S_zz[i, i]

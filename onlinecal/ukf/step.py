@@ -123,6 +123,13 @@ def vehicle_accel_from_dev(cal: OnlineCalibrator, dev: float, dt: float, tl: flo
     c = cal.config
     if c.vehicle == "auto" and not cal._vehicle.active:
         vehicle_event(cal, cal._vehicle.update(math.nan, dev, tl), tl)
+    return vehicle_accel_now(cal, dt)
+
+
+def vehicle_accel_now(cal: OnlineCalibrator, dt: float) -> float:
+    """The variance (m/s²)² of :func:`vehicle_accel` as the vehicle detector stands (a block that does not
+    switch it on: :func:`.fastpath.motion_kernel` takes it as an input)."""
+    c = cal.config
     return vehicle_accel_var(c.vehicle_accel_sigma, c.vehicle_accel_tau, dt) if cal._vehicle.active else 0.0
 
 

@@ -76,6 +76,13 @@ class VehicleDetector:
             self.active, self.since, self.reason = True, float(t), why
         return why
 
+    def dev_switch_above(self) -> float:
+        """The deviation (m/s²) above which the next :meth:`update` with a deviation and no vibration switches
+        the detector on (+inf where none can: it is on, or the run of blocks would still be too short)."""
+        if self.active or self._dev_run + 1 < self.dev_blocks:
+            return math.inf
+        return self.dev_min
+
     def to_dict(self) -> dict[str, Any]:
         return {"active": self.active, "since": self.since, "reason": self.reason}
 

@@ -127,6 +127,33 @@ def _share_mean(X: Array, dyn: NDArray[np.intp], f_body: Array, h_body: Array, Q
 
 
 @_njit
+def _finish_point(X: Array, s: int, si: int, R_nom: Array, P: Array, Ps: Array, Pm: Array, inv_L: float,
+                  has_mag: bool, dip_col: int, R_end: Array, f_body: Array, h_body: Array, Q0: Array,
+                  R0: Array, Rd: Array, Q: Array) -> None:
+    """Dynamic sigma point ``s`` (the ``si``-th) from its block products P, Ps, Pm (3, 3): R0 = R_nom exp([δθ_s]_x),
+    its end attitude R0 P into R_end[si], the block's mean gravity direction (row 3 of R0 Ps / L) into f_body[s],
+    with the magnetometer its field direction through R0 Pm into h_body[s] (and, for the mean, R0 Pm into Q0).
+    R0, Rd, Q (3, 3) are work arrays."""
+    _rodrigues_into(X[s, 0], X[s, 1], X[s, 2], Rd)
+    _mul33(R_nom, Rd, R0)
+    _mul33(R0, P, Rd)
+    for i in range(3):
+        for j in range(3):
+            R_end[si, i, j] = Rd[i, j]
+    for j in range(3):
+        f_body[s, j] = (R0[2, 0] * Ps[0, j] + R0[2, 1] * Ps[1, j] + R0[2, 2] * Ps[2, j]) * inv_L
+    if has_mag:
+        _mul33(R0, Pm, Q)
+        cd, sd = math.cos(X[s, dip_col]), math.sin(X[s, dip_col])
+        for j in range(3):
+            h_body[s, j] = cd * Q[1, j] - sd * Q[2, j]
+        if si == 0:
+            for i in range(3):
+                for j in range(3):
+                    Q0[i, j] = Q[i, j]
+
+
+@_njit
 def _propagate_points_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, has_mag: bool,
                              dyn: NDArray[np.intp], o_g: Array, M_g: Array, b_extra: Array, has_extra: bool,
                              dip_col: int) -> tuple[Array, Array, Array]:
@@ -149,23 +176,7 @@ def _propagate_points_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag:
         s = dyn[si]
         _calibrated_rates(w, o_g, M_g, b_extra, has_extra, si, om)
         _integrate(om, dt, c_mag, has_mag, P, Ps, Pm)
-        _rodrigues_into(X[s, 0], X[s, 1], X[s, 2], Rd)
-        _mul33(R_nom, Rd, R0)
-        _mul33(R0, P, Rd)
-        for i in range(3):
-            for j in range(3):
-                R_end[si, i, j] = Rd[i, j]
-        for j in range(3):
-            f_body[s, j] = (R0[2, 0] * Ps[0, j] + R0[2, 1] * Ps[1, j] + R0[2, 2] * Ps[2, j]) * inv_L
-        if has_mag:
-            _mul33(R0, Pm, Q)
-            cd, sd = math.cos(X[s, dip_col]), math.sin(X[s, dip_col])
-            for j in range(3):
-                h_body[s, j] = cd * Q[1, j] - sd * Q[2, j]
-            if si == 0:
-                for i in range(3):
-                    for j in range(3):
-                        Q0[i, j] = Q[i, j]
+        _finish_point(X, s, si, R_nom, P, Ps, Pm, inv_L, has_mag, dip_col, R_end, f_body, h_body, Q0, R0, Rd, Q)
     _share_mean(X, dyn, f_body, h_body, Q0, has_mag, dip_col)
     return R_end, f_body, h_body
 
@@ -304,23 +315,7 @@ def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, 
                 Pk[i, j] = P[3 * i + j, si]
                 Psk[i, j] = Ps[3 * i + j, si]
                 Pmk[i, j] = Pm[3 * i + j, si]
-        _rodrigues_into(X[s, 0], X[s, 1], X[s, 2], Rd)
-        _mul33(R_nom, Rd, R0)
-        _mul33(R0, Pk, Rd)
-        for i in range(3):
-            for j in range(3):
-                R_end[si, i, j] = Rd[i, j]
-        for j in range(3):
-            f_body[s, j] = (R0[2, 0] * Psk[0, j] + R0[2, 1] * Psk[1, j] + R0[2, 2] * Psk[2, j]) * inv_L
-        if has_mag:
-            _mul33(R0, Pmk, Q)
-            cd, sd = math.cos(X[s, dip_col]), math.sin(X[s, dip_col])
-            for j in range(3):
-                h_body[s, j] = cd * Q[1, j] - sd * Q[2, j]
-            if si == 0:
-                for i in range(3):
-                    for j in range(3):
-                        Q0[i, j] = Q[i, j]
+        _finish_point(X, s, si, R_nom, Pk, Psk, Pmk, inv_L, has_mag, dip_col, R_end, f_body, h_body, Q0, R0, Rd, Q)
     _share_mean(X, dyn, f_body, h_body, Q0, has_mag, dip_col)
     return R_end, f_body, h_body
 

@@ -145,13 +145,13 @@ def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10
     if start == "wrongbench":
         init = wrong_bench(init)
     applied: dict[int, np.ndarray] = {}  # the prior variance each (re)started slice was given, by its start
+    orig = _ukf_start.reset_states
 
     def _record(x: np.ndarray, P: np.ndarray, idx: Any, value: Any, cov: Any) -> None:
         if isinstance(idx, slice) and np.ndim(cov) == 2:
             applied[idx.start] = np.diag(cov).copy()
         orig(x, P, idx, value, cov)
 
-    orig = _ukf_start.reset_states
     _ukf_start.reset_states = _record  # only the mag's cold fit and its raw prior go through start.py
     try:
         t0 = time.perf_counter()

@@ -412,19 +412,12 @@ def issue11_gyro_section() -> tuple[list[str], dict[str, Any]]:
          f"(σ ≤ {max(gains[n][1] for n in tilt):.4f}); the pans turn too little to determine a gain "
          f"(σ {rng([gains[n][1] for n in pans], 3)}); the one-axis turns give "
          f"{', '.join(f'{gains[n][0]:.4f} ± {gains[n][1]:.4f}' for n in rot)} (on the batch's clock).", ""]
-    rows_f = []
-    for k in ("x_rot", "y_rot", "z_rot"):
-        r = fr[k]
-        rows_f.append([k, f"{r['deg']:.2f}", f"{r['factor']:.4f} ± {r['sigma']:.4f}", r["motions"],
-                       f"{r['deg_refit']:.2f} ± {r['deg_sigma']:.2f}",
-                       f"{abs(360 - r['deg_refit']) / r['deg_sigma']:.1f}"])
-    y = fr["y_rot"]
     rows_e, sc_moving, sc_still = [], [], []
     for f in files:
         (r0, a0), (r1, a1) = end_window_scatter(gc, f, cj)
         (sc_still if f.name.startswith("unmoved") else sc_moving).extend(x for x in (r0, r1) if np.isfinite(x))
         rows_e.append([f"`{f.name}`", *(f"{x:.1f}" if np.isfinite(x) else "– (dropout)" for x in (r0, a0, r1, a1)),
-                       f"{fig['pooled'].get(f.name, float('nan')):.1f}" if f.name in fig["pooled"] else "–"])
+                       f"{fig['pooled'][f.name]:.1f}" if f.name in fig["pooled"] else "–"])
     L += ["**The check's own ends.** The closure check takes its two reference attitudes from the accelerometer and "
           "magnetometer averaged over the first and last half second, and says both ends must be held roughly "
           "still. Turning every accelerometer sample of such a window by the calibrated gyro into the window's "
@@ -440,6 +433,13 @@ def issue11_gyro_section() -> tuple[list[str], dict[str, Any]]:
           "so on these files the check's own uncertainty is comparable with the issue's 3° bar, before any "
           "calibration error. (Not corrected here: the check is the project's shared tool, and the size of the "
           "acceleration left in each mean is not measurable without the gravity it is mixed with.)", ""]
+    rows_f = []
+    for k in ("x_rot", "y_rot", "z_rot"):
+        r = fr[k]
+        rows_f.append([k, f"{r['deg']:.2f}", f"{r['factor']:.4f} ± {r['sigma']:.4f}", r["motions"],
+                       f"{r['deg_refit']:.2f} ± {r['deg_sigma']:.2f}",
+                       f"{abs(360 - r['deg_refit']) / r['deg_sigma']:.1f}"])
+    y = fr["y_rot"]
     L += ["**Ferraris turns with a scale not fitted to them.** The batch's gyro (`" + str(fr["method"]) + "`) "
           "integrates each hand-made turn; then the row of its matrix for the turn's axis is rescaled by the "
           "factor that the rest-to-rest face transitions alone want (the three turns left out; "

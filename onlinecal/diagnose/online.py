@@ -37,24 +37,28 @@ def _available_states() -> tuple[str, ...]:
 
 def nis_stats(nis: dict[str, Any]) -> dict[str, Any]:
     """From ``OnlineResult.nis``: per sensor the mean of the window-mean NIS (per update, 3 dof; expected 3),
-    the band of a window mean, the share of windows outside it, and the pooled figures over the sensors."""
+    the band of a window mean, the share of windows outside it and above it (model error, what an extension
+    can remove; below it R is larger than the innovations), and the pooled figures over the sensors."""
     band = [float(v) for v in nis.get("band", [np.nan, np.nan])]
     out: dict[str, Any] = {"band": band, "sensors": {}}
     tot_w = 0
-    s_mean = s_out = 0.0
+    s_mean = s_out = s_above = 0.0
     for s in ("accel", "mag"):
         st = nis.get(s)
         if not isinstance(st, dict) or not st.get("windows"):
             continue
         w = int(st["windows"])
         outside = 1.0 - float(st["in_band"])
-        out["sensors"][s] = {"nis_mean": float(st["mean"]), "outside_band": outside, "windows": w,
-                             "updates": int(st["updates"]), "rejected": int(st["rejected"])}
+        above = float(st.get("above_band", float("nan")))
+        out["sensors"][s] = {"nis_mean": float(st["mean"]), "outside_band": outside, "above_band": above,
+                             "windows": w, "updates": int(st["updates"]), "rejected": int(st["rejected"])}
         tot_w += w
         s_mean += w * float(st["mean"])
         s_out += w * outside
+        s_above += w * above
     out["nis_mean"] = s_mean / tot_w if tot_w else float("nan")
     out["outside_band"] = s_out / tot_w if tot_w else float("nan")
+    out["above_band"] = s_above / tot_w if tot_w else float("nan")
     out["events"] = int(nis.get("events_total", 0))
     return out
 

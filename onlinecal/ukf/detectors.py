@@ -214,23 +214,27 @@ class RestDetector:
         self.prev_means = None
         self.count = 0
 
-    def update(self, B: Blocks, b: int, n: dict[str, float], k: float, rest_blocks: int) -> bool:
-        """Judge block ``b`` of ``B`` with the per-sample noise σ ``n``; True once in a rest."""
+    def update(self, B: Blocks, b: int, n: dict[str, float], k: float, rest_blocks: int,
+               n_mean: dict[str, float] | None = None) -> bool:
+        """Judge block ``b`` of ``B`` with the per-sample noise σ ``n``; True once in a rest. ``n_mean``: the σ
+        whose σ²/L is a block mean's variance (:meth:`.noise.NoiseModel.for_means`; correlated samples
+        average down less), for the change of the means; ``n`` where not given."""
         L = int(B.hi[b] - B.lo[b])
         n_m = int(B.mhi[b] - B.mlo[b])
         gm, am = B.w_mean[b], B.a_mean[b]
         mm = B.m_mean[b] if n_m else None
         sg, sa = n["gyro"], n["accel"]
+        nm = n if n_mean is None else n_mean
         # on Python floats (issue 15): "max over the axes < bound" as "every axis < bound" (a NaN fails both),
         # the differences the same subtractions: the same decisions at a third of numpy's per-call cost
         still = L >= 3 and _all_below(B.w_std[b].tolist(), k * sg) and _all_below(B.a_std[b].tolist(), k * sa)
         prev = self.prev_means
         if prev is not None and still:
             d = math.sqrt(2.0 / L)
-            still = (_all_diff_below(gm.tolist(), prev[0].tolist(), 2 * k * sg * d)
-                     and _all_diff_below(am.tolist(), prev[1].tolist(), 2 * k * sa * d))
+            still = (_all_diff_below(gm.tolist(), prev[0].tolist(), 2 * k * nm["gyro"] * d)
+                     and _all_diff_below(am.tolist(), prev[1].tolist(), 2 * k * nm["accel"] * d))
             if still and mm is not None and prev[2] is not None:
-                still = _all_diff_below(mm.tolist(), prev[2].tolist(), 2 * k * n["mag"] * math.sqrt(2.0 / n_m))
+                still = _all_diff_below(mm.tolist(), prev[2].tolist(), 2 * k * nm["mag"] * math.sqrt(2.0 / n_m))
         self.prev_means = (gm, am, mm if mm is not None else (prev[2] if prev is not None else None))
         self.count = self.count + 1 if still else 0
         self.still = still

@@ -687,13 +687,14 @@ def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0:
     a_mean = acc.sa / acc.na if has_acc else np.zeros(3)
     m_mean = acc.sm / acc.nm if has_mag else np.zeros(3)
     s_gyr = float(np.mean(cal.x[SENSOR_SLICE["gyro"].start + 3 : SENSOR_SLICE["gyro"].start + 6]))
-    var_rest = cal._models.zr.variance(acc.nw, s_gyr)
+    var_rest = cal._models.zr.variance(acc.info("gyro"), s_gyr)
     gyr = cal.lay.hold_slice.get("gyro")
     yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
     mod = cal._models.acc
     ok, x, P, nis, status, post_z, post_P, solved, R_new, fine = rest_update_kernel(
         x0, P0, lam + nst, order, cal.R_nom, cal._Wm, cal._Wc, has_acc, a_mean,
-        1.0 / math.sqrt(acc.na) if has_acc else 1.0, has_mag, m_mean, 1.0 / acc.nm if has_mag else 1.0,
+        1.0 / math.sqrt(acc.info("accel")) if has_acc else 1.0, has_mag, m_mean,
+        1.0 / acc.info("mag") if has_mag else 1.0,
         acc.sw / acc.nw, var_rest, _hold_col(cal, "accel", held), _hold_col(cal, "mag", held),
         -1 if gyr is None else int(gyr.start), mod.gravity, mod.dev_gain,
         np.array([cal._gates["accel"], cal._gates["mag"]]), lay.consider, yaw, _G0, _A0, _M0, DIP)

@@ -54,11 +54,14 @@ def _add(st: dict[str, Any], nis: float, t: float, window: int) -> float | None:
 
 
 def _window_summary(st: dict[str, Any], lo: float, hi: float) -> dict[str, Any]:
-    """Updates, rejected, windows, mean of the window means and the share inside [lo, hi] of one stream."""
+    """Updates, rejected, windows, mean of the window means and the share inside [lo, hi] of one stream, and
+    the shares above and below it (an innovation larger than R says — model error — against a smaller one)."""
     ws = np.array([w[1] for w in st["windows"]]) if st["windows"] else np.zeros(0)
     return {"updates": st["updates"], "rejected": st["rejected"], "windows": int(ws.size),
             "mean": float(ws.mean()) if ws.size else float("nan"),
-            "in_band": float(np.mean((ws >= lo) & (ws <= hi))) if ws.size else float("nan")}
+            "in_band": float(np.mean((ws >= lo) & (ws <= hi))) if ws.size else float("nan"),
+            "above_band": float(np.mean(ws > hi)) if ws.size else float("nan"),
+            "below_band": float(np.mean(ws < lo)) if ws.size else float("nan")}
 
 
 @functools.lru_cache(maxsize=64)

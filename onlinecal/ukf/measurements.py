@@ -218,13 +218,13 @@ def rest_measurements(mod: Models, X: Array, R_nom: Array, sens: tuple[Array, Ar
     meas, f_cal = [], None
     if acc.na:
         a_mean = acc.sa / acc.na
-        var_a, f_all = mod.acc.variance(M[:S], o[:S], a_mean, W[0], W[1], 1.0 / math.sqrt(acc.na))
+        var_a, f_all = mod.acc.variance(M[:S], o[:S], a_mean, W[0], W[1], 1.0 / math.sqrt(acc.info("accel")))
         f_cal = f_all[0]
         Za = mod.acc.h(X, gravity_body(R_s), off[0], T_reg, (o[:S], Minv[:S]))
         meas.append(Measurement("accel", a_mean, Za, np.full(3, var_a)))
     if acc.nm:
         Zm = mod.mag.h(X, field_body(R_s, X[:, DIP]), off[1], (o[S:], Minv[S:]))
-        meas.append(Measurement("mag", acc.sm / acc.nm, Zm, np.full(3, 1.0 / acc.nm)))
+        meas.append(Measurement("mag", acc.sm / acc.nm, Zm, np.full(3, 1.0 / acc.info("mag"))))
     Zg = mod.zr.h(X, off[2], T_reg, f_cal)
-    meas.append(Measurement("rest", acc.sw / acc.nw, Zg, np.full(3, mod.zr.variance(acc.nw, s_gyr))))
+    meas.append(Measurement("rest", acc.sw / acc.nw, Zg, np.full(3, mod.zr.variance(acc.info("gyro"), s_gyr))))
     return meas

@@ -7,7 +7,11 @@ level; process noise (Q) of a block; the allowance for what the sigma points can
 * :meth:`NoiseModel.process_noise`, :meth:`NoiseModel.cal_rw` — the diagonal of Q: angle random walk of
   the gyro, random walk of the calibration terms;
 * :func:`bilinear_var` — the gyro rate error δM·δo the unscented transform leaves out;
-* :func:`hold_sigma`, :func:`lattice_plan` — the mean error of held readings on a coarse lattice.
+* :func:`hold_sigma`, :func:`lattice_plan` — the mean error of held readings on a coarse lattice;
+* :meth:`NoiseModel.rest_pair`, :meth:`NoiseModel.for_means` — the noise of a block *mean*: white noise
+  averages down as σ²/L, correlated noise (a log low-pass filtered before it was written, as PX4's
+  ``sensor_combined``) does not; measured from consecutive block means at rest and applied to every
+  block mean the filter uses (issue 10).
 """
 
 from __future__ import annotations
@@ -25,6 +29,14 @@ from ..specs import FIELD_GAUSS, SensorSpec
 from .layout import ATT, DIP, SENSOR_SLICE
 
 Array = NDArray[np.float64]
+
+MEDIAN_CHI2_3 = 2.365974  # median of χ²(3)
+# relative σ of κ̂ from m pairs: the sample median of χ²(3)/median has σ ≈ 1/(2 f(med) med √m) = 1.12/√m
+# (f(med) = 0.188, the density at the median); consecutive pairs share a block (differences correlated
+# −½), widened to 1.35/√m
+KAPPA_REL_SIGMA = 1.35
+KAPPA_MIN_PAIRS = 20  # 2 s of 0.1-s blocks at rest before any κ is claimed
+KAPPA_KEEP = 3000  # pairs kept (5 minutes of rest at 0.1-s blocks): the median of the most recent
 
 
 def hold_sigma(q: float, sigma_n: float) -> float:
@@ -109,6 +121,8 @@ class NoiseModel:
     _spec_cache: dict[str, float] = field(default_factory=dict)
     _rw_key: tuple[int, float] | None = None
     _rw_cache: Array = field(default_factory=lambda: np.zeros(0))
+    pair_r: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in SENSORS})
+    kappa: dict[str, float] = field(default_factory=lambda: {s: 1.0 for s in SENSORS})
 
     def spec_noise(self, rate: float | None, x: Array) -> dict[str, float]:
         """Per-sample σ of the raw readings from the specs (white noise + the sensor's own quantisation);
@@ -140,6 +154,53 @@ class NoiseModel:
             if self.high[s]:
                 n[s] *= math.sqrt(self.ratio[s])
         return n
+
+    def rest_pair(self, sensor: str, mean: Array, prev: Array, var_white: float) -> tuple[str, str] | None:
+        """Record one pair of consecutive block means at rest, ``mean`` and ``prev`` (3,), whose difference
+        white noise of the filter's σ would give variance ``var_white`` per axis (σ²(1/L₁ + 1/L₂)); update
+        the sensor's block-mean factor κ and return the event of a change (kind, detail), or None.
+
+        κ̂ = median(|Δ|²/var_white) / median χ²(3): 1 for white noise, (1 + ρ)/(1 − ρ) for AR(1) samples
+        of correlation ρ at long blocks — the factor by which a block mean's variance exceeds σ²/L. The
+        median keeps one pair that caught the start of a motion from deciding it. Applied (``kappa``) only
+        where the data say so: κ̂ − 1 beyond 3 of its own σ (:data:`KAPPA_REL_SIGMA`/√m) after
+        :data:`KAPPA_MIN_PAIRS` pairs, and kept until κ̂ − 1 falls within one σ; never below 1 (the spec's
+        white noise is the floor the filter keeps)."""
+        if not (var_white > 0.0 and math.isfinite(var_white)):
+            return None
+        d = mean - prev
+        r = float(d @ d) / var_white
+        if not math.isfinite(r):
+            return None
+        buf = self.pair_r[sensor]
+        buf.append(r)
+        if len(buf) > KAPPA_KEEP:
+            del buf[: len(buf) - KAPPA_KEEP]
+        m = len(buf)
+        if m < KAPPA_MIN_PAIRS:
+            return None
+        k_hat = float(np.median(buf)) / MEDIAN_CHI2_3
+        old = self.kappa[sensor]
+        # on beyond 3σ of κ̂, off only once within 1σ of white: a κ̂ near the threshold does not toggle
+        on = k_hat - 1.0 > (1.0 if old > 1.0 else 3.0) * KAPPA_REL_SIGMA / math.sqrt(m)
+        new = k_hat if on else 1.0
+        self.kappa[sensor] = new
+        if old == 1.0 and new > 1.0:
+            return ("noise_means",
+                    f"{sensor} block means at rest vary {new:.2g}× (in variance) what white noise of the filter's "
+                    f"σ gives ({m} pairs): its noise is correlated (a log low-pass filtered before it was "
+                    f"written) or above that σ; every block mean's σ raised by {math.sqrt(new):.2g}×")
+        if old > 1.0 and new == 1.0:
+            return "noise_means", f"{sensor} block means at rest back within white noise of its σ ({m} pairs)"
+        return None
+
+    def for_means(self, n: dict[str, float]) -> dict[str, float]:
+        """The per-sample σ ``n`` scaled so that σ²/L is the variance of an L-sample block mean (or sum):
+        × √κ per sensor (:meth:`rest_pair`). The same dict when every κ is 1."""
+        k = self.kappa
+        if k["gyro"] == 1.0 and k["accel"] == 1.0 and k["mag"] == 1.0:
+            return n
+        return {s: v * math.sqrt(k[s]) for s, v in n.items()}
 
     def cal_rw(self, n: int, x: Array, ext_sigma: list[tuple[slice, float]], rw_factor: float) -> Array:
         """Random-walk variance per second of every state (n,) (attitude entries 0): density × ``rw_factor``

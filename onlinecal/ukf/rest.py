@@ -8,10 +8,19 @@ a linear model (the mean is sufficient); for the nonlinear one it keeps the line
 measurement would have it: updating with every block at a drifting linearisation point instead gains
 spurious information from the same static pose (with a cold accelerometer, its scale and bias along
 gravity — o = a − g/s, a curve — ended at 5–18σ after 30 s at rest).
+
+A rest's mean is only as good as the rest is still. White noise averages down as σ²/N; a reading that
+wanders (a bench's micro-tilts, a bias that moves over seconds: the real PX4 log's accelerometer block
+means at rest vary 4–16× more about their rest's mean than the noise between neighbouring blocks says) does
+not. Each sensor's rest therefore also tests the scatter of its block means about their running mean
+against what the block means' noise explains (χ² with 3(k − 1) degrees of freedom for k blocks); where it
+is beyond 3σ of that, the excess variance per block is a floor σ_w² that the rest's mean keeps whatever
+its length (:meth:`RestAccumulator.info`): its variance 1/N_info + σ_w² instead of 1/N_info.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -21,7 +30,17 @@ from numpy.typing import NDArray
 from .blocks import Blocks
 
 Array = NDArray[np.float64]
-_ARRAYS = ("x", "P", "R_nom", "q", "sa", "sm", "sw")
+_ARRAYS = ("x", "P", "R_nom", "q", "sa", "sm", "sw", "qa", "qm", "qw")
+
+
+def _scatter_step(s: Array, n: float, m: Array, w: float) -> Array:
+    """What one more block mean ``m`` (3,) of weight ``w`` adds to the weighted scatter about the running
+    mean s/n (West 1979): w·n/(n + w)·(m − s/n)², per axis; w·0 for the first block."""
+    if n <= 0.0:
+        return np.zeros(3)
+    d = m - s / n
+    out: Array = d * d * (w * n / (n + w))
+    return out
 
 
 @dataclass
@@ -47,6 +66,14 @@ class RestAccumulator:
     sT: float = 0.0
     nT: int = 0
     post: dict[str, tuple[Array, Array]] = field(default_factory=dict)
+    # the wander test (:meth:`floor`): per axis the information-weighted scatter of the block means about
+    # their running mean (3,), and the blocks
+    qa: Array = field(default_factory=lambda: np.zeros(3))
+    qm: Array = field(default_factory=lambda: np.zeros(3))
+    qw: Array = field(default_factory=lambda: np.zeros(3))
+    ka: int = 0
+    km: int = 0
+    kw: int = 0
 
     @classmethod
     def start(cls, x: Array, P: Array, R_nom: Array, held: dict[str, bool], use_mag: bool) -> RestAccumulator:
@@ -60,18 +87,53 @@ class RestAccumulator:
         n_m = int(B.mhi[b] - B.mlo[b])
         if use_acc:
             w_ = L / n["accel"] ** 2
+            self.qa += _scatter_step(self.sa, self.na, B.a_mean[b], w_)
             self.sa += B.a_mean[b] * w_
             self.na += w_
+            self.ka += 1
         if use_mag:
             w_ = n_m / n["mag"] ** 2
+            self.qm += _scatter_step(self.sm, self.nm, B.m_mean[b], w_)
             self.sm += B.m_mean[b] * w_
             self.nm += w_
+            self.km += 1
         w_ = L / n["gyro"] ** 2
+        self.qw += _scatter_step(self.sw, self.nw, B.w_mean[b], w_)
         self.sw += B.w_mean[b] * w_
         self.nw += w_
+        self.kw += 1
         if temp_reg is not None:
             self.sT += float(np.sum(temp_reg))
             self.nT += L
+
+    def _sums(self, sensor: str) -> tuple[Array, float, Array, int]:
+        return {"accel": (self.sa, self.na, self.qa, self.ka), "mag": (self.sm, self.nm, self.qm, self.km),
+                "gyro": (self.sw, self.nw, self.qw, self.kw)}[sensor]
+
+    def floor(self, sensor: str) -> float:
+        """The variance σ_w² per axis (the sensor's unit²) by which ``sensor``'s block means scatter about the
+        rest's mean beyond their noise; 0 unless the scatter is beyond 3σ of it.
+
+        With information weights w_b = L_b/σ² (the block mean's inverse variance), the weighted scatter
+        T = Σ_b w_b |m_b − m̄|² (``qa``, ``qm``, ``qw``: accumulated about the running mean, West's weighted
+        update, free of the cancellation of Σ w m² − |Σ w m|²/N) is χ² with 3(k − 1) degrees of freedom for
+        k blocks of noise alone; beyond 1 + 3√(2/dof) in T/dof, the excess (T/dof − 1) times the mean block
+        variance k/N."""
+        _, n, q, k = self._sums(sensor)
+        if k < 3 or n <= 0.0:
+            return 0.0
+        dof = 3 * (k - 1)
+        ratio = float(np.sum(q)) / dof
+        if not ratio - 1.0 > 3.0 * math.sqrt(2.0 / dof):
+            return 0.0
+        return (ratio - 1.0) * k / n
+
+    def info(self, sensor: str) -> float:
+        """The information of ``sensor``'s rest mean (1/variance per axis): N of its blocks' noise, and with
+        a wander floor σ_w² (:meth:`floor`) 1/(1/N + σ_w²) — exactly N where there is none."""
+        n = self._sums(sensor)[1]
+        w = self.floor(sensor)
+        return n if w == 0.0 else 1.0 / (1.0 / n + w)
 
     @property
     def T_reg(self) -> float:
@@ -87,10 +149,11 @@ class RestAccumulator:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RestAccumulator:
-        a = {k: np.asarray(d[k], float) for k in _ARRAYS}
         post = {k: (np.asarray(v[0], float), np.asarray(v[1], float)) for k, v in d["post"].items()}
+        a = {k: np.asarray(d[k], float) if k in d else np.zeros(3) for k in _ARRAYS}  # the q sums: since issue 10
         return cls(a["x"], a["P"], a["R_nom"], dict(d["held"]), bool(d["use_mag"]), a["q"], a["sa"], float(d["na"]),
-                   a["sm"], float(d["nm"]), a["sw"], float(d["nw"]), float(d["sT"]), int(d["nT"]), post)
+                   a["sm"], float(d["nm"]), a["sw"], float(d["nw"]), float(d["sT"]), int(d["nT"]), post,
+                   a["qa"], a["qm"], a["qw"], int(d.get("ka", 0)), int(d.get("km", 0)), int(d.get("kw", 0)))
 
     def sequential_nis(self, B: Blocks, b: int, n: dict[str, float], use_acc: bool,
                        use_mag: bool) -> list[tuple[str, float]]:
@@ -103,7 +166,8 @@ class RestAccumulator:
             if post is not None and ok and cnt:
                 nu = mean - post[0]
                 try:
-                    out.append((s, float(nu @ np.linalg.solve(post[1] + np.eye(3) * n[s] ** 2 / cnt, nu))))
+                    var = n[s] ** 2 / cnt + self.floor(s)  # a block also carries the rest's wander
+                    out.append((s, float(nu @ np.linalg.solve(post[1] + np.eye(3) * var, nu))))
                 except np.linalg.LinAlgError:
                     pass
         return out

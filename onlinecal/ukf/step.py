@@ -11,7 +11,7 @@ measurement on the state the rest began with, :mod:`.rest`). :func:`gated_update
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,8 +65,15 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
                                                    tuple(cal.lay.hold_slice))
     for s in resets:
         cal._reset_hold(s)
-    zero_rate = cal._rest_det.update(B, b, vehicle_rest_noise(cal, B, b, n, tl), c.rest_k,
-                                     c.rest_blocks) and cal._rest_det.still
+    n_mean = cal._noise.for_means(n)
+    prev, was_still = cal._rest_det.prev_means, cal._rest_det.still
+    n_rest = vehicle_rest_noise(cal, B, b, n, tl)
+    zero_rate = cal._rest_det.update(B, b, n_rest, c.rest_k, c.rest_blocks,
+                                     n_mean if n_rest is n else None) and cal._rest_det.still
+    if was_still and cal._rest_det.still and prev is not None:
+        block_mean_noise(cal, B, b, prev, n, tl)
+        n_mean = cal._noise.for_means(n)
+    n = n_mean
     acc = cal._rest_acc
     if acc is not None and (not zero_rate or cal._hold_new or held != acc.held or mag_changed
                             or use_mag != acc.use_mag):
@@ -75,6 +82,21 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
         rest_step(cal, B, b, t, T, n, held, use_mag, clip)
     else:
         motion_step(cal, B, b, t, a, T, n, held, use_mag, clip)
+
+
+def block_mean_noise(cal: OnlineCalibrator, B: Blocks, b: int, prev: tuple[Any, ...], n: dict[str, float],
+                     tl: float) -> None:
+    """Two consecutive still blocks (the previous one's means ``prev``, block ``b`` of ``B``): their means'
+    difference, per sensor, to the block-mean noise factor (:meth:`.noise.NoiseModel.rest_pair`) against
+    the per-sample σ ``n`` the filter uses."""
+    L, n_m = int(B.hi[b] - B.lo[b]), int(B.mhi[b] - B.mlo[b])
+    pairs = [("gyro", B.w_mean[b], prev[0], L), ("accel", B.a_mean[b], prev[1], L)]
+    if n_m and prev[2] is not None:
+        pairs.append(("mag", B.m_mean[b], prev[2], n_m))
+    for s, mean, before, cnt in pairs:
+        ev = cal._noise.rest_pair(s, mean, before, n[s] ** 2 * 2.0 / cnt)
+        if ev is not None:
+            cal._event(ev[0], ev[1], tl)
 
 
 def offsets(cal: OnlineCalibrator, sensor: str, held: bool) -> Offsets:

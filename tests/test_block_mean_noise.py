@@ -38,7 +38,7 @@ def test_the_block_mean_factor_of_ar1_samples_is_their_closed_form() -> None:
     x = _ar1(np.random.default_rng(1), (pairs + 1) * L, rho)
     means = x.reshape(pairs + 1, L, 3).mean(axis=1)
     nm = NoiseModel({})
-    events = [nm.rest_pair("accel", means[k], means[k - 1], 2.0 / L) for k in range(1, pairs + 1)]
+    events = [nm.rest_pair("accel", means[k], means[k - 1], 2.0 / L, 1.0) for k in range(1, pairs + 1)]
     # the truth from the autocovariance ρ^|i−j|: Var(m₁ − m₂) = 2V − 2C against white noise's 2/L
     i = np.arange(L)
     V = np.sum(rho ** np.abs(i[:, None] - i[None, :])) / L**2
@@ -62,7 +62,7 @@ def test_white_block_means_leave_the_filter_s_sigma_alone() -> None:
         evs = 0
         for _ in range(3000):
             m = rng.normal(size=3) / np.sqrt(L)
-            evs += nm.rest_pair("accel", m, prev, 2.0 / L) is not None
+            evs += nm.rest_pair("accel", m, prev, 2.0 / L, 1.0) is not None
             prev = m
         assert nm.kappa["accel"] == 1.0
         switched += evs > 0

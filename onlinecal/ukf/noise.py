@@ -155,21 +155,25 @@ class NoiseModel:
                 n[s] *= math.sqrt(self.ratio[s])
         return n
 
-    def rest_pair(self, sensor: str, mean: Array, prev: Array, var_white: float) -> tuple[str, str] | None:
-        """Record one pair of consecutive block means at rest, ``mean`` and ``prev`` (3,), whose difference
-        white noise of the filter's σ would give variance ``var_white`` per axis (σ²(1/L₁ + 1/L₂)); update
-        the sensor's block-mean factor κ and return the event of a change (kind, detail), or None.
+    def rest_pair(self, sensor: str, mean: Array, prev: Array, inv_counts: float, sigma: float
+                  ) -> tuple[str, str] | None:
+        """Record one pair of consecutive block means at rest, ``mean`` and ``prev`` (3,), of L₁ and L₂ samples
+        (``inv_counts`` = 1/L₁ + 1/L₂), against the filter's per-sample σ ``sigma`` now; update the sensor's
+        block-mean factor κ and return the event of a change (kind, detail), or None.
 
-        κ̂ = median(|Δ|²/var_white) / median χ²(3): 1 for white noise, (1 + ρ)/(1 − ρ) for AR(1) samples
-        of correlation ρ at long blocks — the factor by which a block mean's variance exceeds σ²/L. The
-        median keeps one pair that caught the start of a motion from deciding it. Applied (``kappa``) only
-        where the data say so: κ̂ − 1 beyond 3 of its own σ (:data:`KAPPA_REL_SIGMA`/√m) after
-        :data:`KAPPA_MIN_PAIRS` pairs, and kept until κ̂ − 1 falls within one σ; never below 1 (the spec's
-        white noise is the floor the filter keeps)."""
+        Kept per pair: |Δ|²/(1/L₁ + 1/L₂), the per-sample variance the pair implies (raw unit²), so that κ
+        follows the σ the filter uses now (the magnetometer's raw unit is only known after its cold start,
+        and the noise monitor may raise a σ). κ̂ = median / (median χ²(3) σ²): 1 for white noise,
+        (1 + ρ)/(1 − ρ) for AR(1) samples of correlation ρ at long blocks — the factor by which a block
+        mean's variance exceeds σ²/L. The median keeps one pair that caught the start of a motion from
+        deciding it. Applied (``kappa``) only where the data say so: κ̂ − 1 beyond 3 of its own σ
+        (:data:`KAPPA_REL_SIGMA`/√m) after :data:`KAPPA_MIN_PAIRS` pairs, and kept until κ̂ − 1 falls within
+        one σ; never below 1 (the spec's white noise is the floor the filter keeps)."""
+        var_white = sigma**2 * inv_counts
         if not (var_white > 0.0 and math.isfinite(var_white)):
             return None
         d = mean - prev
-        r = float(d @ d) / var_white
+        r = float(d @ d) / inv_counts
         if not math.isfinite(r):
             return None
         buf = self.pair_r[sensor]
@@ -179,7 +183,7 @@ class NoiseModel:
         m = len(buf)
         if m < KAPPA_MIN_PAIRS:
             return None
-        k_hat = float(np.median(buf)) / MEDIAN_CHI2_3
+        k_hat = float(np.median(buf)) / (MEDIAN_CHI2_3 * sigma**2)
         old = self.kappa[sensor]
         # on beyond 3σ of κ̂, off only once within 1σ of white: a κ̂ near the threshold does not toggle
         on = k_hat - 1.0 > (1.0 if old > 1.0 else 3.0) * KAPPA_REL_SIGMA / math.sqrt(m)

@@ -94,7 +94,7 @@ def block_mean_noise(cal: OnlineCalibrator, B: Blocks, b: int, prev: tuple[Any, 
     if n_m and prev[2] is not None:
         pairs.append(("mag", B.m_mean[b], prev[2], n_m))
     for s, mean, before, cnt in pairs:
-        ev = cal._noise.rest_pair(s, mean, before, n[s] ** 2 * 2.0 / cnt)
+        ev = cal._noise.rest_pair(s, mean, before, 2.0 / cnt, n[s])
         if ev is not None:
             cal._event(ev[0], ev[1], tl)
 

@@ -134,3 +134,19 @@ def test_real_px4_log_rest_is_consistent_with_block_mean_noise() -> None:
     assert "accel.scale.z" not in rep["determined"]
     sz, ssz = whole.accel.scale[2], whole.to_dict()["accel"]["sigma"]["scale"][2]
     assert abs(sz - 1.0) <= 3 * ssz
+
+
+def test_kappa_follows_the_sigma_in_use_not_the_one_a_pair_was_taken_with() -> None:
+    """The magnetometer's σ in raw units is only right after its cold start: pairs taken while the filter's σ
+    was half the truth raise κ then, and must not keep it raised once the σ is right (the paper session's
+    magnetometer, whose NIS fell from 2.76 to 1.53 when they did)."""
+    L, rng = 5, np.random.default_rng(7)
+    nm = NoiseModel({})
+    prev = rng.normal(size=3) / np.sqrt(L)
+    for k in range(600):
+        m = rng.normal(size=3) / np.sqrt(L)
+        nm.rest_pair("mag", m, prev, 2.0 / L, 0.5 if k < 60 else 1.0)
+        prev = m
+        if k == 59:
+            assert nm.kappa["mag"] == pytest.approx(4.0, rel=0.35)  # the σ of the moment was half the noise
+    assert nm.kappa["mag"] == 1.0

@@ -3,8 +3,8 @@
 Truths from elsewhere: the closed-form variance of means of AR(1) samples (their autocovariance σ²ρ^|k|, not
 the filter's estimator), a wander injected into block means at a known variance, and the real PX4 log
 (``../shared/data/px4-ulog/sample.ulg``, ``sensor_combined``: low-pass filtered by PX4 before it is logged),
-checked out of fit — the two halves of its 60-s rest replayed apart must agree within their σ, and its rest's
-NIS must read what a consistent filter reads (3 for 3 axes)."""
+checked by its rest's NIS (3 for 3 axes where the σ are right; 5.6 before) and out of fit by the two halves of
+its 60-s rest replayed apart."""
 
 from __future__ import annotations
 
@@ -117,17 +117,17 @@ def test_real_px4_log_rest_is_consistent_with_block_mean_noise() -> None:
     on = rest.meta["online"]
     means = [e for e in on["events"] if e["kind"] == "noise_means"]
     assert any(e["detail"].startswith("accel block means at rest vary") for e in means)
-    # the rest's NIS reads 3 per 3-axis update when its σ are right (5.6 before; the health band [1.5, 6])
+    # the rest's NIS reads 3 per 3-axis update when its σ are right (5.6 before, with no 10-s window of six
+    # inside the 99 % band; the health band of the mean is [1.5, 6])
     assert 2.0 <= on["nis"]["accel"]["mean"] <= 4.0
-    # out of fit: the accelerometer terms of the two halves agree within 3σ (the gyro's: see docs/flight.md —
-    # its bias drifts between the halves beyond the filter's random-walk allowance, z 1.7–5.8, 6.4–14.1 before)
+    assert on["nis"]["accel"]["in_band"] >= 5 / 6
+    # out of fit: the accelerometer terms of the two halves agree within 3σ (undetermined at one attitude:
+    # a weak check). The gyro bias's do not: it drifts between the halves by 0.14–0.32 mrad/s, beyond the
+    # filter's random-walk allowance of the bias (docs/flight.md) — a finding, not asserted away.
     for k in ("bias", "scale"):
         x1, x2 = np.array(halves[0]["accel"][k]), np.array(halves[1]["accel"][k])
         s = np.hypot(halves[0]["accel"]["sigma"][k], halves[1]["accel"]["sigma"][k])
         assert np.all(np.abs(x1 - x2) <= 3 * s)
-    g1, g2 = np.array(halves[0]["gyro"]["bias"]), np.array(halves[1]["gyro"]["bias"])
-    z = (g1 - g2) / np.hypot(halves[0]["gyro"]["sigma"]["bias"], halves[1]["gyro"]["sigma"]["bias"])
-    assert np.max(np.abs(z)) < 7.0, z
     # the whole log's rest no longer splits into dozens of rests (each a fresh, overconfident measurement of the
     # same pose): its z scale, which read 0.957 ± 0.004 "determined", is not determined and within 3σ of 1
     rep = whole.meta["online"]["observability"]

@@ -35,7 +35,9 @@ MEDIAN_CHI2_3 = 2.365974  # median of χ²(3)
 # (f(med) = 0.188, the density at the median); consecutive pairs share a block (differences correlated
 # −½), widened to 1.35/√m
 KAPPA_REL_SIGMA = 1.35
-KAPPA_MIN_PAIRS = 20  # 2 s of 0.1-s blocks at rest before any κ is claimed
+KAPPA_MIN_PAIRS = 50  # 5 s of 0.1-s blocks at rest before any κ is claimed (from 20, white paper
+# sessions switched it on at their first rests in ~1 of 6 seeds: a 3σ test repeated at every pair)
+KAPPA_ON_SIGMA = 3.0  # κ̂ − 1 beyond this many of its σ switches it on; within one σ switches it off
 KAPPA_KEEP = 3000  # pairs kept (5 minutes of rest at 0.1-s blocks): the median of the most recent
 
 
@@ -186,7 +188,7 @@ class NoiseModel:
         k_hat = float(np.median(buf)) / (MEDIAN_CHI2_3 * sigma**2)
         old = self.kappa[sensor]
         # on beyond 3σ of κ̂, off only once within 1σ of white: a κ̂ near the threshold does not toggle
-        on = k_hat - 1.0 > (1.0 if old > 1.0 else 3.0) * KAPPA_REL_SIGMA / math.sqrt(m)
+        on = k_hat - 1.0 > (1.0 if old > 1.0 else KAPPA_ON_SIGMA) * KAPPA_REL_SIGMA / math.sqrt(m)
         new = k_hat if on else 1.0
         self.kappa[sensor] = new
         if old == 1.0 and new > 1.0:

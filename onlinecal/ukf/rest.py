@@ -38,9 +38,9 @@ def _scatter_step(s: Array, n: float, m: Array, w: float) -> Array:
     mean s/n (West 1979): w·n/(n + w)·(m − s/n)², per axis; w·0 for the first block."""
     if n <= 0.0:
         return np.zeros(3)
-    d = m - s / n
-    out: Array = d * d * (w * n / (n + w))
-    return out
+    c = w * n / (n + w)
+    (mx, my, mz), (sx, sy, sz) = m.tolist(), s.tolist()  # Python floats, then one small array
+    return np.array([(mx - sx / n) ** 2 * c, (my - sy / n) ** 2 * c, (mz - sz / n) ** 2 * c])
 
 
 @dataclass
@@ -106,9 +106,12 @@ class RestAccumulator:
             self.sT += float(np.sum(temp_reg))
             self.nT += L
 
-    def _sums(self, sensor: str) -> tuple[Array, float, Array, int]:
-        return {"accel": (self.sa, self.na, self.qa, self.ka), "mag": (self.sm, self.nm, self.qm, self.km),
-                "gyro": (self.sw, self.nw, self.qw, self.kw)}[sensor]
+    def _sums(self, sensor: str) -> tuple[float, Array, int]:
+        if sensor == "accel":
+            return self.na, self.qa, self.ka
+        if sensor == "mag":
+            return self.nm, self.qm, self.km
+        return self.nw, self.qw, self.kw
 
     def floor(self, sensor: str) -> float:
         """The variance σ_w² per axis (the sensor's unit²) by which ``sensor``'s block means scatter about the
@@ -119,11 +122,12 @@ class RestAccumulator:
         update, free of the cancellation of Σ w m² − |Σ w m|²/N) is χ² with 3(k − 1) degrees of freedom for
         k blocks of noise alone; beyond 1 + 3√(2/dof) in T/dof, the excess (T/dof − 1) times the mean block
         variance k/N."""
-        _, n, q, k = self._sums(sensor)
+        n, q, k = self._sums(sensor)
         if k < 3 or n <= 0.0:
             return 0.0
         dof = 3 * (k - 1)
-        ratio = float(np.sum(q)) / dof
+        qx, qy, qz = q.tolist()  # on Python floats: called several times per rest block
+        ratio = (qx + qy + qz) / dof
         if not ratio - 1.0 > 3.0 * math.sqrt(2.0 / dof):
             return 0.0
         return (ratio - 1.0) * k / n
@@ -131,7 +135,7 @@ class RestAccumulator:
     def info(self, sensor: str) -> float:
         """The information of ``sensor``'s rest mean (1/variance per axis): N of its blocks' noise, and with
         a wander floor σ_w² (:meth:`floor`) 1/(1/N + σ_w²) — exactly N where there is none."""
-        n = self._sums(sensor)[1]
+        n = self._sums(sensor)[0]
         w = self.floor(sensor)
         return n if w == 0.0 else 1.0 / (1.0 / n + w)
 

@@ -88,7 +88,8 @@ def block_mean_noise(cal: OnlineCalibrator, B: Blocks, b: int, prev: tuple[Any, 
                      tl: float) -> None:
     """Two consecutive still blocks (the previous one's means ``prev``, block ``b`` of ``B``): their means'
     difference, per sensor, to the block-mean noise factor (:meth:`.noise.NoiseModel.rest_pair`) against
-    the per-sample σ ``n`` the filter uses."""
+    the per-sample σ ``n`` the filter uses; both blocks taken at this block's sample count (1/L₁ + 1/L₂ =
+    2/L), as the rest detector's bound on the change of the means takes them."""
     L, n_m = int(B.hi[b] - B.lo[b]), int(B.mhi[b] - B.mlo[b])
     pairs = [("gyro", B.w_mean[b], prev[0], L), ("accel", B.a_mean[b], prev[1], L)]
     if n_m and prev[2] is not None:

@@ -63,7 +63,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import minimize
 
 from .model import Calibration
 
@@ -153,6 +152,8 @@ def max_angle_error(E: Array, n: int = 20000) -> float:
         return -float(_angle_between((E @ u)[None], u[None])[0])
 
     best = float(ang[k])
+    from scipy.optimize import minimize  # lazily: ~0.3 s of every CLI start-up otherwise
+
     res = minimize(neg, U[k], method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-14, "maxiter": 2000})
     return max(best, -float(res.fun))
 

@@ -37,7 +37,6 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 SCHEMA = "onlinecal.calibration/2"
 SCHEMAS_READ = (SCHEMA, "onlinecal.calibration/1")  # /1: no gauge, raw_units or health (migrated on load)
@@ -210,6 +209,8 @@ def decompose(matrix: ArrayLike) -> tuple[Array, Array, Array]:
 
     def resid(p: Array) -> Array:
         return (compose(p[:3], p[3:6], p[6:]) - M).ravel()
+
+    from scipy.optimize import least_squares  # lazily: ~0.3 s of every CLI start-up otherwise
 
     sol = least_squares(resid, x0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
     p = sol.x

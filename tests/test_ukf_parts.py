@@ -344,3 +344,25 @@ def test_align_gauge_turns_every_sensor_by_one_rotation():
         assert np.allclose(rel0, rel1, atol=1e-12) and np.array_equal(out.sensor(s).bias, cal.sensor(s).bias)
     Q = out.gyro.matrix @ np.linalg.inv(cal.gyro.matrix)
     assert np.allclose(Q @ Q.T, np.eye(3), atol=1e-12) and np.linalg.det(Q) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(("n", "alpha", "beta", "kappa"), [(1, 0.3, 2.0, 0.0), (38, 0.3, 2.0, 0.0), (40, 0.3, 2.0, 0.0),
+                                                          (7, 1e-3, 2.0, 3.0), (12, 0.5, 0.0, -2.0)])
+def test_weights_are_filterpys_bit_for_bit(n, alpha, beta, kappa) -> None:
+    """The weights are written out (filterpy's import costs every start-up ~1 s); they must be the
+    reference implementation's own numbers, not merely close."""
+    from filterpy.kalman import MerweScaledSigmaPoints
+
+    ref = MerweScaledSigmaPoints(n, alpha, beta, kappa)
+    Wm, Wc = merwe_weights(n, alpha, beta, kappa)
+    assert np.array_equal(Wm, ref.Wm) and np.array_equal(Wc, ref.Wc)
+
+
+@pytest.mark.parametrize(("p", "dof"), [(0.999, 3), (0.9999, 3), (0.0005, 300.0), (0.9995, 300.0), (0.5, 1)])
+def test_chi2_quantile_is_scipys_bit_for_bit(p, dof) -> None:
+    """The χ² quantile without importing scipy.stats (~0.5 s of every start-up): scipy's own numbers."""
+    from scipy.stats import chi2
+
+    from onlinecal.ukf.health import chi2_ppf
+
+    assert chi2_ppf(p, dof) == float(chi2.ppf(p, dof))

@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from ..io.base import ImuData
 from ..model import Calibration, SensorCalibration
@@ -377,6 +376,8 @@ def refine_gyro_matrix(segs: list[Segmentation], o: Array, G0: Array, acc: Senso
             C[ids] = ordered_product(rodrigues(arr.reshape(-1, 3) @ G.T).reshape(S, L, 3, 3))
         pred = np.einsum("sji,sj->si", C[idx], v0)
         return ((v1 - pred) / sig[:, None]).ravel()
+
+    from scipy.optimize import least_squares  # lazily: ~0.3 s of every CLI start-up otherwise
 
     sol = least_squares(resid, G0.ravel(), method="lm", x_scale="jac")
     r = sol.fun

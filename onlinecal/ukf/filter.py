@@ -29,7 +29,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from ..io.base import ImuData
 from ..model import SENSORS, Calibration
@@ -40,7 +39,7 @@ from .blocks import third_diff_var as third_diff_var  # re-exported
 from .config import EXTENSIONS, UKFConfig
 from .detectors import HoldTracker, Lattice, RailDetector, RestDetector
 from .detectors import value_lattice as value_lattice
-from .health import EventLog, NisMonitor
+from .health import EventLog, NisMonitor, chi2_ppf
 from .layout import AXES, SENSOR_SLICE, index
 from .magdisturb import MagDisturbanceGate
 from .magstart import MagStart
@@ -110,7 +109,7 @@ class OnlineCalibrator:
     def _configure(self) -> None:
         """Everything derived from config and init alone: gates, specs, measurement models, gauge."""
         c = self.config
-        self._gates = {"accel": float(chi2.ppf(c.acc_gate_p, 3)), "mag": float(chi2.ppf(c.mag_gate_p, 3))}
+        self._gates = {"accel": chi2_ppf(c.acc_gate_p, 3), "mag": chi2_ppf(c.mag_gate_p, 3)}
         self._specs = c.sensor_specs()
         self._noise = NoiseModel(self._specs)
         self._models = Models(AccelModel(c.gravity, c.acc_dev_gain, c.acc_lever_m), MagModel(),

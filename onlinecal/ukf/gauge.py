@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from ..model import Calibration, SensorCalibration, decompose
@@ -32,6 +31,8 @@ def align_gauge(cal: Calibration, sensor: str = "accel", alpha: ArrayLike = (0.0
 
     def resid(q: np.ndarray) -> np.ndarray:
         return decompose(Rotation.from_rotvec(q).as_matrix() @ M_ref)[1] - target
+
+    from scipy.optimize import least_squares  # lazily: ~0.3 s of every CLI start-up otherwise
 
     q = least_squares(resid, -(decompose(M_ref)[1] - target), xtol=1e-14, ftol=1e-14).x
     Q = Rotation.from_rotvec(q).as_matrix()

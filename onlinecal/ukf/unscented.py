@@ -1,9 +1,10 @@
 """The scaled unscented transform and the Kalman update, as pure functions of (x, P, ...).
 
 Sigma points and weights are those of Wan & van der Merwe (2000), as filterpy's
-``MerweScaledSigmaPoints`` has them (weights taken from it; the points written out so that the factor
-can be taken in any state order). The update is the textbook UKF update (Särkkä, *Bayesian Filtering and
-Smoothing*, alg. 8.3 / filterpy's ``UnscentedKalmanFilter.update``) on stacked measurements, with
+``MerweScaledSigmaPoints`` has them (its weights' arithmetic, compared with it bit for bit in
+``tests/test_ukf_parts.py``; the points written out so that the factor can be taken in any state order).
+The update is the textbook UKF update (Särkkä, *Bayesian Filtering and Smoothing*, alg. 8.3 / filterpy's
+``UnscentedKalmanFilter.update``) on stacked measurements, with
 
 * per-sensor chi-square gating (:class:`Gating`: dropped, or R inflated to the gate's size),
 * Schmidt–Kalman consider states (zero gain; the Joseph-like covariance update keeps P the true error
@@ -19,16 +20,23 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
 
 def merwe_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[Array, Array]:
-    """Mean and covariance weights (2n + 1,) each of the scaled unscented transform (filterpy's)."""
-    pts = MerweScaledSigmaPoints(n, alpha, beta, kappa)
-    return pts.Wm, pts.Wc
+    """Mean and covariance weights (2n + 1,) each of the scaled unscented transform: λ = α²(n + κ) − n,
+    W_i = 1/(2(n + λ)), Wm_0 = λ/(n + λ), Wc_0 = Wm_0 + 1 − α² + β — filterpy's
+    ``MerweScaledSigmaPoints._compute_weights``, operation for operation (importing filterpy costs every
+    start-up ~1 s: its ``kalman`` package pulls in scipy.stats)."""
+    lambda_ = alpha**2 * (n + kappa) - n
+    c = 0.5 / (n + lambda_)
+    Wc = np.full(2 * n + 1, c)
+    Wm = np.full(2 * n + 1, c)
+    Wc[0] = lambda_ / (n + lambda_) + (1 - alpha**2 + beta)
+    Wm[0] = lambda_ / (n + lambda_)
+    return Wm, Wc
 
 
 def sigma_points(x: Array, P: Array, alpha: float, kappa: float, perm: NDArray[np.intp],

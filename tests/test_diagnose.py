@@ -138,8 +138,9 @@ def test_real_session_with_little_motion_does_not_crash(data_dir) -> None:
 def test_extended_calibration_improves_replay_and_ukf_nis(tmp_path, capsys) -> None:
     """A hidden gyro temperature_bias (coefficient drawn per seed): diagnose writes the extended calibration and
     the UKF's NIS before/after; ``replay --init extended.json`` (the extension applied to the log by
-    onlinecal.apply_ext) ends with the gyro bias on the affected axis closer to the truth, and a lower NIS,
-    than ``replay --init baseline.json``."""
+    onlinecal.apply_ext) ends with the gyro bias on the affected axis closer to the truth, and far more
+    precise, than ``replay --init baseline.json`` (which, with no term for the drift, widens its bias's random
+    walk to it: honest, not precise)."""
     from onlinecal.model import Calibration
     from onlinecal.sim.effects import TemperatureBias
 
@@ -177,18 +178,22 @@ def test_extended_calibration_improves_replay_and_ukf_nis(tmp_path, capsys) -> N
     # holds b25 + c(T − 25) − ĉ(T − T0), which is the bias at T0 only where ĉ = c: the filter ends on its
     # value at the last temperature (a coefficient off by 0.14 of its σ moves it by 2e-5 rad/s over 8 °C)
     b25 = sim.truth.calibration.gyro.bias[k]
-    b_t0 = b25 + coeff * (ext["T0"] - 25.0)
     t_end = float(sim.data.temp[-1])
     b_corr_end = b25 + coeff * (t_end - 25.0) - ext["coeff"] * (t_end - ext["T0"])
     err_ext = abs(out["ext"].gyro.bias[k] - b_corr_end)
     assert err_ext < 3 * out["ext"].gyro.sigma["bias"][k], (err_ext, out["ext"].gyro.sigma["bias"])
-    # the paper model's bias is off whether it is read as the bias at T0 or at the session's end temperature
+    # the paper model has no term for the drift. Before session 10 its replay ended confidently off (the bias's
+    # random walk the spec's) and its NIS above the extension's. Since then the filter measures the drift at rest
+    # (event bias_walk, docs/flight.md) and widens the bias's random walk to it: the paper model's bias is then
+    # honest (within its 3σ of the value at the session's end), but ~20× less precise than with the extension,
+    # which needs no walk; their NIS are alike (the walk absorbs the drift), so precision is the comparison.
     b_end = b25 + coeff * (sim.data.temp[-1] - 25.0)
-    err_base = min(abs(out["base"].gyro.bias[k] - b_t0), abs(out["base"].gyro.bias[k] - b_end))
-    assert err_ext < 0.2 * err_base, (err_ext, err_base)
-    nis = {n: c.meta["online"]["nis"] for n, c in out.items()}
-    pooled = {n: np.mean([v[s]["mean"] for s in ("accel", "mag")]) for n, v in nis.items()}
-    assert abs(pooled["ext"] - 3.0) < abs(pooled["base"] - 3.0), pooled
+    s_base, s_ext = out["base"].gyro.sigma["bias"][k], out["ext"].gyro.sigma["bias"][k]
+    err_base = abs(out["base"].gyro.bias[k] - b_end)
+    walks = {n: [e for e in c.meta["online"]["events"] if e["kind"] == "bias_walk"] for n, c in out.items()}
+    assert walks["base"] and not walks["ext"], walks
+    assert err_base <= 3 * s_base, (err_base, s_base)
+    assert err_ext < err_base and s_ext < 0.2 * s_base, (err_ext, err_base, s_ext, s_base)
 
 
 def test_live_extensions_pointwise_per_block_and_time_offset_refused(tmp_path, capsys) -> None:

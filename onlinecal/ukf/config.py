@@ -50,6 +50,10 @@ class UKFConfig:
     # random walk on the calibration states per √s: the white-noise density of the sensor times this
     # (bias) and the density relative to full scale times this (dimensionless terms)
     rw_factor: float = 1e-3
+    # the gyro bias's random walk raised to what a trend of its rest means shows (.noise.NoiseModel.
+    # walk_from_rest: a warm-up drift); diagnose turns it off, so that an unmodelled drift reads there as the
+    # model error it is (temperature_bias) instead of being absorbed as noise
+    measure_bias_walk: bool = True
     # quasi-static weighting of the accelerometer (adaptive R): σ² += (k·dev)² + (r ω²)², dev the part of
     # ||a|−g| beyond 3σ of what noise and the calibration's own uncertainty explain
     acc_dev_gain: float = 5.0

@@ -11,7 +11,10 @@ level; process noise (Q) of a block; the allowance for what the sigma points can
 * :meth:`NoiseModel.rest_pair`, :meth:`NoiseModel.for_means` — the noise of a block *mean*: white noise
   averages down as σ²/L, correlated noise (a log low-pass filtered before it was written, as PX4's
   ``sensor_combined``) does not; measured from consecutive block means at rest and applied to every
-  block mean the filter uses (issue 10).
+  block mean the filter uses (issue 10);
+* :meth:`NoiseModel.walk_from_rest` — the gyro bias's random walk measured at rest from the trend of its
+  rest means, used in place of the spec's allowance where the data show more (issue 10: a freshly powered
+  unit's bias drifts while it warms up).
 """
 
 from __future__ import annotations
@@ -41,6 +44,9 @@ KAPPA_ON_SIGMA = 3.0  # κ̂ − 1 beyond this many of its σ switches it on; wi
 KAPPA_EVERY_FROM = 100  # from here on κ̂ is taken every 10th pair (a rest-heavy log spent a third of its
 # replay on the median at every pair: the paper session 1.20 → 1.81 s CPU)
 KAPPA_KEEP = 3000  # pairs kept (5 minutes of rest at 0.1-s blocks): the median of the most recent
+WALK_CHI2_3 = 21.108  # χ²(3) at 1 − 1e-4: the test of a rest's gyro trend, re-taken at every rest block
+WALK_MIN_BLOCKS = 20  # blocks of a rest before its trend is tested
+WALK_CLEAR_S = 30.0  # a rest this long without a trend returns the bias's walk to the spec's
 
 
 def hold_sigma(q: float, sigma_n: float) -> float:
@@ -125,8 +131,10 @@ class NoiseModel:
     _spec_cache: dict[str, float] = field(default_factory=dict)
     _rw_key: tuple[int, float] | None = None
     _rw_cache: Array = field(default_factory=lambda: np.zeros(0))
+    _walk_set: bool = False
     pair_r: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in SENSORS})
     kappa: dict[str, float] = field(default_factory=lambda: {s: 1.0 for s in SENSORS})
+    q_walk: float = 0.0  # the gyro bias's random walk measured at rest (:meth:`walk_from_rest`), rad²/s³; 0: spec
 
     def spec_noise(self, rate: float | None, x: Array) -> dict[str, float]:
         """Per-sample σ of the raw readings from the specs (white noise + the sensor's own quantisation);
@@ -210,6 +218,38 @@ class NoiseModel:
             return n
         return {s: v * math.sqrt(k[s]) for s, v in n.items()}
 
+    def walk_from_rest(self, slope: Array, var_slope: float, T: float, k: int) -> tuple[str, str] | None:
+        """The gyro bias's random walk from a rest of ``T`` s and ``k`` blocks whose gyro means trend by
+        ``slope`` (3,) rad/s per s, each axis of variance ``var_slope`` under the block means' noise
+        (:meth:`.rest.RestAccumulator.trend`). Returns the event of a change, or None.
+
+        At rest the gyro reads its bias (and the Earth's rate, constant at rest): a trend is a bias that
+        moves — a freshly powered unit warming up (the real PX4 log's: 5–11 µrad/s per s over its 60-s rest).
+        Tested as χ² = Σ slope²/var_slope against χ²(3) at 1 − 10⁻⁴ (:data:`WALK_CHI2_3`; re-taken at every
+        block of a rest, so a strict level). Where it passes, the walk is the drift's excess power per axis
+        times the rest's length, q² = T · Σ(slope² − var_slope)/3 (rad²/s³): the random walk whose spread over
+        the next T s, q²T, is the drift's (rT)², and whose end-against-mean over the rest, q²T/3, covers the
+        drift's (rT/2)². It is kept (a warm-up does not stop when a rest ends) until a rest of at least
+        :data:`WALK_CLEAR_S` s shows no trend; a drift that slows is then seen as none. A drift is not a
+        random walk: the allowance holds over horizons like the rest's, not far beyond."""
+        if k < WALK_MIN_BLOCKS or not var_slope > 0.0:
+            return None
+        sx, sy, sz = slope.tolist()
+        chi = (sx * sx + sy * sy + sz * sz) / var_slope
+        old = self.q_walk
+        if chi > WALK_CHI2_3:
+            self.q_walk = max(0.0, (sx * sx + sy * sy + sz * sz - 3.0 * var_slope) / 3.0) * T
+        elif T >= WALK_CLEAR_S:
+            self.q_walk = 0.0
+        new = self.q_walk
+        if old == 0.0 and new > 0.0:
+            return ("bias_walk", f"gyro bias drifts at rest by {math.sqrt(sx * sx + sy * sy + sz * sz):.2g} rad/s "
+                    f"per s over {T:.3g} s (χ² {chi:.3g}, 3 dof): its random walk raised from the spec's to "
+                    f"{math.sqrt(new):.2g} rad/s/√s")
+        if old > 0.0 and new == 0.0:
+            return "bias_walk", f"gyro bias steady over a {T:.3g}-s rest: its random walk back to the spec's"
+        return None
+
     def cal_rw(self, n: int, x: Array, ext_sigma: list[tuple[slice, float]], rw_factor: float) -> Array:
         """Random-walk variance per second of every state (n,) (attitude entries 0): density × ``rw_factor``
         per √s (bias), density/full-scale × ``rw_factor`` (dimensionless terms) — a slow drift allowance set
@@ -220,6 +260,7 @@ class NoiseModel:
         the rest is cached on (n, ``rw_factor``) and those three are set at every call from the current x
         (issue 15: before, the whole vector was keyed on the unit rounded to 1e-6 — a ``round`` of a numpy
         scalar, ~5 µs, and a miss nearly every block; the entries lagged the unit by up to that rounding).
+        The gyro bias's entries are the measured walk (:meth:`walk_from_rest`) where it is above the spec's.
         Returns the cached array, as before (read it, do not change it: the next call rewrites it)."""
         key = (n, float(rw_factor))
         if self._rw_key != key or self._rw_cache.shape[0] != n:
@@ -234,6 +275,12 @@ class NoiseModel:
                 q[sl] = (sig * rw_factor) ** 2
             self._rw_key, self._rw_cache = key, q
         q = self._rw_cache
+        if self.q_walk > 0.0 or self._walk_set:
+            # the gyro bias's random walk measured at rest (:meth:`walk_from_rest`), never below the spec's
+            gb = SENSOR_SLICE["gyro"].start
+            q_spec = (self._density(self.specs["gyro"]) * rw_factor) ** 2
+            q[gb : gb + 3] = max(q_spec, self.q_walk)
+            self._walk_set = self.q_walk > 0.0
         if "mag" in self.specs:
             unit = mag_unit_of(x) / FIELD_GAUSS
             sm = SENSOR_SLICE["mag"].start

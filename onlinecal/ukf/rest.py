@@ -16,6 +16,12 @@ not. Each sensor's rest therefore also tests the scatter of its block means abou
 against what the block means' noise explains (χ² with 3(k − 1) degrees of freedom for k blocks); where it
 is beyond 3σ of that, the excess variance per block is a floor σ_w² that the rest's mean keeps whatever
 its length (:meth:`RestAccumulator.info`): its variance 1/N_info + σ_w² instead of 1/N_info.
+
+The gyro's zero rate is a measurement of the bias *at the rest's end* (the state it updates), but the mean
+is that of the bias over the rest. Where the bias walks (:meth:`.noise.NoiseModel.walk_from_rest`, q² per
+second), the two differ by q²T/3 in variance after T s (a random walk's end against its mean over [0, T]);
+the gyro's rest variance is then 1/N + max(σ_w², q²T/3) — the wander floor measures the same motion as a
+scatter (q²T/6 for a random walk), so the larger of the two is taken, not their sum.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ from numpy.typing import NDArray
 from .blocks import Blocks
 
 Array = NDArray[np.float64]
-_ARRAYS = ("x", "P", "R_nom", "q", "sa", "sm", "sw", "qa", "qm", "qw")
+_ARRAYS = ("x", "P", "R_nom", "q", "sa", "sm", "sw", "qa", "qm", "qw", "smt")
 
 
 def _scatter_step(s: Array, n: float, m: Array, w: float) -> Array:
@@ -74,6 +80,13 @@ class RestAccumulator:
     ka: int = 0
     km: int = 0
     kw: int = 0
+    # the rest's duration (s) and the gyro bias's random walk in use (rad²/s³, :meth:`info`)
+    dur: float = 0.0
+    walk: float = 0.0
+    # the gyro means' regression on the rest's time (:meth:`trend`): Σ w t, Σ w t², Σ w t m (3,)
+    tw: float = 0.0
+    ttw: float = 0.0
+    smt: Array = field(default_factory=lambda: np.zeros(3))
 
     @classmethod
     def start(cls, x: Array, P: Array, R_nom: Array, held: dict[str, bool], use_mag: bool) -> RestAccumulator:
@@ -98,6 +111,10 @@ class RestAccumulator:
             self.nm += w_
             self.km += 1
         w_ = L / n["gyro"] ** 2
+        t_ = self.dur
+        self.tw += w_ * t_
+        self.ttw += w_ * t_ * t_
+        self.smt += B.w_mean[b] * (w_ * t_)
         self.qw += _scatter_step(self.sw, self.nw, B.w_mean[b], w_)
         self.sw += B.w_mean[b] * w_
         self.nw += w_
@@ -134,10 +151,24 @@ class RestAccumulator:
 
     def info(self, sensor: str) -> float:
         """The information of ``sensor``'s rest mean (1/variance per axis): N of its blocks' noise, and with
-        a wander floor σ_w² (:meth:`floor`) 1/(1/N + σ_w²) — exactly N where there is none."""
+        a wander floor σ_w² (:meth:`floor`) 1/(1/N + σ_w²) — exactly N where there is none. The gyro's with
+        a bias walk (``walk`` > 0): 1/(1/N + max(σ_w², walk·dur/3)), the bias at the rest's end against its
+        mean over the rest."""
         n = self._sums(sensor)[0]
         w = self.floor(sensor)
+        if sensor == "gyro" and self.walk > 0.0:
+            w = max(w, self.walk * self.dur / 3.0)
         return n if w == 0.0 else 1.0 / (1.0 / n + w)
+
+    def trend(self) -> tuple[Array, float]:
+        """The gyro block means' weighted least-squares slope on the rest's time (3,) (rad/s per s, raw) and
+        its variance per axis under the means' noise (weights w = L/σ², the rest's information): slope =
+        (N Σwtm − Σwt Σwm) / D, variance N / D, D = N Σwt² − (Σwt)². Zero slope and infinite variance before
+        two blocks at distinct times."""
+        D = self.nw * self.ttw - self.tw * self.tw
+        if not D > 0.0:
+            return np.zeros(3), math.inf
+        return (self.nw * self.smt - self.tw * self.sw) / D, self.nw / D
 
     @property
     def T_reg(self) -> float:
@@ -157,7 +188,9 @@ class RestAccumulator:
         a = {k: np.asarray(d[k], float) if k in d else np.zeros(3) for k in _ARRAYS}  # the q sums: since issue 10
         return cls(a["x"], a["P"], a["R_nom"], dict(d["held"]), bool(d["use_mag"]), a["q"], a["sa"], float(d["na"]),
                    a["sm"], float(d["nm"]), a["sw"], float(d["nw"]), float(d["sT"]), int(d["nT"]), post,
-                   a["qa"], a["qm"], a["qw"], int(d.get("ka", 0)), int(d.get("km", 0)), int(d.get("kw", 0)))
+                   a["qa"], a["qm"], a["qw"], int(d.get("ka", 0)), int(d.get("km", 0)), int(d.get("kw", 0)),
+                   float(d.get("dur", 0.0)), float(d.get("walk", 0.0)), float(d.get("tw", 0.0)),
+                   float(d.get("ttw", 0.0)), a["smt"])
 
     def sequential_nis(self, B: Blocks, b: int, n: dict[str, float], use_acc: bool,
                        use_mag: bool) -> list[tuple[str, float]]:

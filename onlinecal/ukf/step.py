@@ -236,12 +236,20 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
         acc = cal._rest_acc = RestAccumulator.start(cal.x, cal.P, cal.R_nom, held, use_mag)
     dt_blk = float(t[-1] - cal._t_last)
     acc.q += cal._process_noise(dt_blk, n["gyro"])
+    acc.dur += dt_blk
     k = cal._div.count
     for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
         cal._nis_record(s, nis, tl)
     if cal._div.count != k:
         return  # a divergence: the restarted state stands (not the rest's first state)
     acc.add(B, b, n, not clip["accel"], use_mag, temp_reg(cal, T) if has_temp(cal) else None)
+    # with a temperature state the model has a term for a warm-up drift
+    if cal.config.measure_bias_walk and "temperature_bias:gyro" not in cal.lay.ext_slice:
+        slope, var_slope = acc.trend()
+        ev = cal._noise.walk_from_rest(slope, var_slope, acc.dur, acc.kw)
+        if ev is not None:
+            cal._event(ev[0], ev[1], tl)
+        acc.walk = cal._noise.q_walk
     if acc.na:
         cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
     x0, P0 = acc.x, acc.P + np.diag(acc.q)

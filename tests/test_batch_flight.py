@@ -55,9 +55,11 @@ def test_throttle_series_marks_powered_samples(flight):
 
 def test_one_hz_log_gives_no_gyro_scale(tmp_path):
     sim = simulate("paper", 2, imu_rate=1.0, mag_rate=1.0)
-    t0 = time.perf_counter()
+    # the bound on CPU time, not wall time: a 140-sample log once took 9.8 s (issue 15); ~0.2 s now, 0.75 s on a
+    # first call (lazy imports) — the wall clock of a loaded 2-core machine failed this at 2 s with nothing wrong
+    t0 = time.process_time()
     res = run_batch([sim.data])
-    assert time.perf_counter() - t0 < 2.0
+    assert time.process_time() - t0 < 2.0
     g = res.calibration.gyro
     assert g is not None
     assert "scale" not in g.sigma and "alpha" not in g.sigma and "xi" not in g.sigma

@@ -225,15 +225,17 @@ class NoiseModel:
 
         At rest the gyro reads its bias (and the Earth's rate, constant at rest): a trend is a bias that
         moves — a freshly powered unit warming up (the real PX4 log's: 5–11 µrad/s per s over its 60-s rest).
-        Tested as χ² = Σ slope²/var_slope against χ²(3) at 1 − 10⁻⁴ (:data:`WALK_CHI2_3`; re-taken at every
-        block of a rest, so a strict level). Where it passes, the walk is the drift's excess power per axis
-        times the rest's length, q² = T · Σ(slope² − var_slope)/3 (rad²/s³): the random walk whose spread over
-        the next T s, q²T, is the drift's (rT)², and whose end-against-mean over the rest, q²T/3, covers the
-        drift's (rT/2)². It is kept (a warm-up does not stop when a rest ends) until a rest of at least
-        :data:`WALK_CLEAR_S` s shows no trend; a drift that slows is then seen as none. A drift is not a
-        random walk: the allowance holds over horizons like the rest's, not far beyond."""
-        if k < WALK_MIN_BLOCKS or not var_slope > 0.0:
-            return None
+        Tested as χ² = Σ slope²/var_slope against χ²(3) at 1 − 10⁻⁴ (:data:`WALK_CHI2_3`; re-taken at every block of
+        a rest, so a strict level), from the rest's :data:`WALK_MIN_BLOCKS`-th block, once the noise of a block mean
+        is decided (:data:`KAPPA_MIN_PAIRS` pairs at rest in the log). Where it passes, the walk is the drift's
+        excess power per axis times the rest's length, q² = T · Σ(slope² − var_slope)/3 (rad²/s³): the random walk
+        whose spread over the next T s, q²T, is the drift's (rT)², and whose end-against-mean over the rest, q²T/3,
+        covers the drift's (rT/2)². It is kept (a warm-up does not stop when a rest ends) until a rest of at least
+        :data:`WALK_CLEAR_S` s shows no trend; a drift that slows is then seen as none. A drift is not a random
+        walk: the allowance holds over horizons like the rest's, not far beyond."""
+        if k < WALK_MIN_BLOCKS or len(self.pair_r["gyro"]) < KAPPA_MIN_PAIRS or not var_slope > 0.0:
+            return None  # nor before the noise of a block mean (κ, :meth:`rest_pair`) is decided: on a low-pass
+            # filtered log the slope's variance would be κ times too small
         sx, sy, sz = slope.tolist()
         chi = (sx * sx + sy * sy + sz * sz) / var_slope
         old = self.q_walk

@@ -35,8 +35,9 @@ from scipy.special import gammaincinv
 def chi2_ppf(p: float, dof: float) -> float:
     """The p quantile of χ²(dof): 2·P⁻¹(dof/2, p), P the regularised lower incomplete gamma function —
     scipy.stats.chi2.ppf's own formula, the same bits, without importing scipy.stats (~0.5 s of every
-    start-up; ``tests/test_ukf.py`` compares the two)."""
+    start-up; ``tests/test_ukf_parts.py`` compares the two)."""
     return float(2.0 * gammaincinv(dof / 2.0, p))
+
 
 def new_nis_stats() -> dict[str, Any]:
     """Empty NIS bookkeeping of one sensor (JSON-able: it goes into the checkpoint as it is)."""

@@ -240,6 +240,28 @@ class RestDetector:
         self.still = still
         return self.count >= rest_blocks
 
+    def marginal(self, B: Blocks, b: int, n: dict[str, float], n_mean: dict[str, float] | None, k: float,
+                 prev: tuple[Any, ...], f: float = 2.0) -> bool:
+        """Whether block ``b`` (judged not still by :meth:`update`) is a lone accelerometer or magnetometer
+        excursion that a running rest may leave out instead of ending (:func:`.step.step`): its gyro passes the
+        still test as it is (the body did not turn: the held attitude stays right through the block), its
+        accel and mag pass it with their bounds × ``f``, against the block before it (``prev``: its means) — a
+        tap on the bench, a tail of the noise's distribution. On the real PX4 log, 7 such blocks (accel mean
+        changes 4.0–7.3 of the bound's unit, spreads 2.1–2.3) cut its 60-s rest into 12 rests, each a fresh
+        measurement of the same pose (docs/flight.md)."""
+        L = int(B.hi[b] - B.lo[b])
+        n_m = int(B.mhi[b] - B.mlo[b])
+        nm = n if n_mean is None else n_mean
+        d = math.sqrt(2.0 / L) if L else 0.0
+        if not (L >= 3 and _all_below(B.w_std[b].tolist(), k * n["gyro"])
+                and _all_diff_below(B.w_mean[b].tolist(), prev[0].tolist(), 2 * k * nm["gyro"] * d)
+                and _all_below(B.a_std[b].tolist(), f * k * n["accel"])
+                and _all_diff_below(B.a_mean[b].tolist(), prev[1].tolist(), f * 2 * k * nm["accel"] * d)):
+            return False
+        if n_m and prev[2] is not None:
+            return _all_diff_below(B.m_mean[b].tolist(), prev[2].tolist(), f * 2 * k * nm["mag"] * math.sqrt(2.0 / n_m))
+        return True
+
 
 @dataclass
 class HoldTracker:

@@ -695,7 +695,7 @@ def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0:
         x0, P0, lam + nst, order, cal.R_nom, cal._Wm, cal._Wc, has_acc, a_mean,
         1.0 / math.sqrt(acc.info("accel")) if has_acc else 1.0, has_mag, m_mean,
         1.0 / acc.info("mag") if has_mag else 1.0,
-        acc.sw / acc.nw, var_rest, _hold_col(cal, "accel", held), _hold_col(cal, "mag", held),
+        acc.gyro_mean(), var_rest, _hold_col(cal, "accel", held), _hold_col(cal, "mag", held),
         -1 if gyr is None else int(gyr.start), mod.gravity, mod.dev_gain,
         np.array([cal._gates["accel"], cal._gates["mag"]]), lay.consider, yaw, _G0, _A0, _M0, DIP)
     if not ok:

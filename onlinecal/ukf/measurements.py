@@ -226,5 +226,5 @@ def rest_measurements(mod: Models, X: Array, R_nom: Array, sens: tuple[Array, Ar
         Zm = mod.mag.h(X, field_body(R_s, X[:, DIP]), off[1], (o[S:], Minv[S:]))
         meas.append(Measurement("mag", acc.sm / acc.nm, Zm, np.full(3, 1.0 / acc.info("mag"))))
     Zg = mod.zr.h(X, off[2], T_reg, f_cal)
-    meas.append(Measurement("rest", acc.sw / acc.nw, Zg, np.full(3, mod.zr.variance(acc.info("gyro"), s_gyr))))
+    meas.append(Measurement("rest", acc.gyro_mean(), Zg, np.full(3, mod.zr.variance(acc.info("gyro"), s_gyr))))
     return meas

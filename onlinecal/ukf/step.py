@@ -66,20 +66,28 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     for s in resets:
         cal._reset_hold(s)
     n_mean = cal._noise.for_means(n)
-    prev, was_still = cal._rest_det.prev_means, cal._rest_det.still
+    det = cal._rest_det
+    prev, was_still, count = det.prev_means, det.still, det.count
     n_rest = vehicle_rest_noise(cal, B, b, n, tl)
-    zero_rate = cal._rest_det.update(B, b, n_rest, c.rest_k, c.rest_blocks,
-                                     n_mean if n_rest is n else None) and cal._rest_det.still
-    if was_still and cal._rest_det.still and prev is not None:
+    n_det = n_mean if n_rest is n else None
+    zero_rate = det.update(B, b, n_rest, c.rest_k, c.rest_blocks, n_det) and det.still
+    skip = False
+    acc = cal._rest_acc
+    if (not zero_rate and acc is not None and was_still and not acc.skipped and prev is not None
+            and det.marginal(B, b, n_rest, n_det, c.rest_k, prev)):
+        # one block a little beyond the noise inside a rest: left out, the rest goes on (RestDetector.marginal);
+        # the detector judges the next block against the block before this one
+        det.prev_means, det.count, det.still = prev, count, True
+        zero_rate = skip = True
+    if was_still and det.still and prev is not None and not skip:
         block_mean_noise(cal, B, b, prev, n, tl)
         n_mean = cal._noise.for_means(n)
     n = n_mean
-    acc = cal._rest_acc
     if acc is not None and (not zero_rate or cal._hold_new or held != acc.held or mag_changed
                             or use_mag != acc.use_mag):
         cal._end_rest()
     if zero_rate:
-        rest_step(cal, B, b, t, T, n, held, use_mag, clip)
+        rest_step(cal, B, b, t, T, n, held, use_mag, clip, skip)
     else:
         motion_step(cal, B, b, t, a, T, n, held, use_mag, clip)
 
@@ -220,10 +228,12 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
 
 
 def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: dict[str, float], held: dict[str, bool],
-              use_mag: bool, clip: dict[str, bool]) -> None:
+              use_mag: bool, clip: dict[str, bool], skip: bool = False) -> None:
     """A block inside a rest (:mod:`.rest`): the attitude is held (no gyro integration: the gyro's
     reading at rest is its bias, measured by the zero-rate update) and the rest's running means are
-    one measurement on the state the rest began with. Ended by :meth:`_end_rest`."""
+    one measurement on the state the rest began with. Ended by :meth:`_end_rest`. ``skip``: a lone block a
+    little beyond the noise (:meth:`.detectors.RestDetector.marginal`), left out of the means: only its
+    time passes (the process noise of its duration)."""
     tl = float(t[-1])
     if not (np.isfinite(cal.P).all() and (cal.P.diagonal() > 0).all()):
         # the running rest restarts from its first state, which would hide a broken covariance
@@ -237,6 +247,10 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
     dt_blk = float(t[-1] - cal._t_last)
     acc.q += cal._process_noise(dt_blk, n["gyro"])
     acc.dur += dt_blk
+    acc.skipped = skip
+    if skip:
+        commit(cal, cal.x, cal.P, tl)
+        return
     k = cal._div.count
     for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
         cal._nis_record(s, nis, tl)

@@ -253,3 +253,37 @@ def test_the_compiled_third_difference_median_equals_the_numpy_one() -> None:
         new = third_diff_var(v, t, seg, n_seg)
     assert np.isnan(ref).sum() >= 3 and np.isfinite(ref).sum() > 100
     assert np.array_equal(ref, new, equal_nan=True)
+
+
+@pytest.mark.parametrize("vehicle", [False, True])
+def test_the_compiled_block_q_equals_the_python_process_noise(vehicle: bool) -> None:
+    """block_q_kernel (the block's base Q inside the compiled motion call) against the Python it replaced,
+    :func:`onlinecal.ukf.step.earth_rate_q` of ``OnlineCalibrator._process_noise`` (the random walk with the mag
+    bias's entries from the state's mag scale, the gyro's angle random walk on the attitude, and on a vehicle
+    the Earth-rate floor on the gyro bias — some axes below it, one above, one NaN — and the horizontal
+    allowance on the attitude): the same bits, over mag scales and block lengths."""
+    from onlinecal.ukf import step
+    from onlinecal.ukf.layout import SENSOR_SLICE
+
+    rng = np.random.default_rng(3 + vehicle)
+    cal = OnlineCalibrator(None)
+    cal._rate = 200.0
+    cal._vehicle.active = vehicle
+    g0, m0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["mag"].start
+    floor = (cal.config.rest_rate_sigma / 1.0) ** 2
+    for trial in range(40):
+        cal.x[m0 + 3 : m0 + 6] = rng.uniform(0.001, 3.0, 3)  # mag scale: gauss to milli-gauss units
+        cal.x[g0 + 3 : g0 + 6] = 1.0 + rng.normal(0, 0.05, 3)
+        A = rng.normal(size=(cal.n, cal.n)) * 1e-3
+        cal.P = A @ A.T + np.eye(cal.n) * 1e-9
+        cal.P[g0, g0], cal.P[g0 + 1, g0 + 1] = floor * rng.uniform(0.1, 0.9), floor * rng.uniform(1.1, 3.0)
+        if trial == 7:
+            cal.P[g0 + 2, g0 + 2] = np.nan  # a NaN passes (np.maximum's rule), as in the Python
+        dt, s_g = float(rng.uniform(0.02, 0.3)), float(rng.uniform(1e-4, 1e-2))
+        ref = step.earth_rate_q(cal, cal._process_noise(dt, s_g), dt).copy()
+        rw, (mag_q, dens, fg, rwf) = fastpath._q_args(cal)
+        new = fastpath.block_q_kernel(rw, dt, cal._rate, s_g, SENSOR_SLICE["mag"].start if mag_q else -1, dens, fg,
+                                      rwf, cal.x, cal.P, vehicle, g0, g0 + 3, cal.config.rest_rate_sigma,
+                                      cal.config.vehicle_accel_tau, fastpath._OM2, fastpath._TWO)
+        assert np.array_equal(ref, new, equal_nan=True), trial
+        assert (ref[g0] > rw[g0] * dt) == vehicle and ref[0] > 0  # the floor topped the first axis up

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..specs import FIELD_GAUSS
 from . import kernels
 from .kernels import _njit
 from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_kernel, rot_log_rel_kernel
@@ -53,6 +54,7 @@ from .layout import DIP, SENSOR_SLICE
 from .predict import interp_weights
 from .start import calibrated
 from .unscented import UpdateResult
+from .vehicle import OMEGA_E_HORIZONTAL_RMS
 
 if TYPE_CHECKING:
     from .blocks import Blocks
@@ -97,6 +99,45 @@ def _bilinear_var(P: Array, g0: int) -> Array:
     for i in range(3):
         out[i] = sig[3 + i] * sig[3 + i] * v_o[i] + s_ang**2 * (tot - v_o[i])
     return out
+
+
+@_njit
+def block_q_kernel(rw: Array, dt: float, rate: float, sigma_gyr: float, mag_col: int, mag_dens: float,
+                   field_gauss: float, rw_factor: float, x: Array, P: Array, earth: bool, bias_col: int,
+                   scale_col: int, sigma_rest: float, tau: float, om2: float, two: float) -> Array:
+    """The block's Q diagonal (n,) before the block's own terms: :meth:`.noise.NoiseModel.process_noise` of
+    :meth:`.noise.NoiseModel.cal_rw` and, with ``earth`` (a vehicle), :func:`.step.earth_rate_q` — in one pass,
+    the same operations in the same order as the Python they replace, so the same bits.
+
+    rw (n,) the cached random-walk vector (:meth:`.noise.NoiseModel.cal_rw`, whose mag-bias entries are set
+    here from x: (density · unit/``field_gauss`` · rw_factor)², unit = 1 / mean mag scale; ``mag_col`` the
+    mag bias's first column, −1 without a mag spec); dt s the block; ``rate`` Hz; ``sigma_gyr`` rad/s per
+    sample; P (n, n) the covariance Q adds to; ``bias_col``, ``scale_col`` the gyro's bias and scale columns;
+    ``sigma_rest`` rad/s, ``tau`` s and ``om2`` = Ω_h² (rad/s)² as :func:`.vehicle.earth_rate_noise`;
+    ``two`` = 2.0 at run time (libm's ``pow``, as Python's ``**2``: see :func:`motion_kernel`)."""
+    n = rw.shape[0]
+    q = np.empty(n)
+    for k in range(n):
+        q[k] = rw[k] * dt
+    if mag_col >= 0:
+        s0 = mag_col + 3  # the mag's scale
+        unit = 1.0 / (((x[s0] + x[s0 + 1]) + x[s0 + 2]) / 3.0)  # (.noise.mag_unit_of)
+        v = math.pow(mag_dens * (unit / field_gauss) * rw_factor, two)
+        for k in range(mag_col, mag_col + 3):
+            q[k] = v * dt
+    att = dt * rate * math.pow(sigma_gyr / rate, two)
+    for k in range(3):
+        q[k] = att
+    if earth:
+        s_gyr = ((x[scale_col] + x[scale_col + 1]) + x[scale_col + 2]) / 3.0
+        floor = math.pow(sigma_rest / s_gyr, two)
+        for k in range(bias_col, bias_col + 3):
+            v = floor - P[k, k]
+            q[k] += v if not v <= 0.0 else 0.0
+        a = om2 * tau * dt
+        for k in range(3):
+            q[k] += a
+    return q
 
 
 @_njit
@@ -177,7 +218,9 @@ def _model_pair_shared(p: Array, g1: int, g2: int) -> tuple[Array, Array, Array]
 
 @_njit
 def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
-                   c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
+                   c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, rw: Array, rate: float,
+                   sigma_gyr: float, mag_q: bool, mag_dens: float, field_gauss: float, rw_factor: float,
+                   earth: bool, sigma_rest: float, tau: float, om2: float, two: float,
                    q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float,
                    gravity: float, g0: int, a0: int, m0: int, dip_col: int
                    ) -> tuple[bool, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, float]:
@@ -185,8 +228,11 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
 
     x (n,), P (n, n) the state; scale = λ + n; order the Cholesky's state order; R_nom (3, 3); w (L + 1, 3),
     dt (L,), c_mag (L + 1,) (read when has_mag) as :func:`.kernels_propagate.propagate_kernel`; dyn the
-    dynamic sigma points; Wm, Wc the weights; q (n,) the base process noise (changed in place: + the
-    trapezoid allowance ``q_att_jerk`` and the bilinear term × dt_blk² on the attitude); w_mean (3,) the
+    dynamic sigma points; Wm, Wc the weights; rw … two the base process noise's inputs (:func:`block_q_kernel`:
+    the cached random walk rw (n,), the rate Hz, the gyro's per-sample σ, whether the mag has a spec (its bias
+    columns from m0), its density, the field's gauss, rw_factor, whether the Earth-rate allowance applies (a
+    vehicle) with its σ, τ and Ω_h²), to which the trapezoid allowance ``q_att_jerk`` and the bilinear term ×
+    dt_blk² are added on the attitude; w_mean (3,) the
     block-mean raw rate; a_mean (3,) the block-mean raw accel, σ ``sig_mean``; g0, a0, m0 the sensors'
     first columns; dip_col the dip's.
 
@@ -195,6 +241,8 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     (2S, 3, 3) of accel then mag (S rows, the accel's, without has_mag), ω of the mean (3,) rad/s, the
     specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
     """
+    q = block_q_kernel(rw, dt_blk, rate, sigma_gyr, m0 if mag_q else -1, mag_dens, field_gauss, rw_factor, x, P,
+                       earth, g0, g0 + 3, sigma_rest, tau, om2, two)
     X, ok = sigma_points_kernel(x, P, scale, order)
     S, Sd = X.shape[0], dyn.shape[0]
     if not ok:
@@ -308,8 +356,10 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
 
 @_njit
 def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
-                  c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
-                  q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float, gravity: float,
+                  c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, rw: Array, rate: float,
+                  sigma_gyr: float, mag_q: bool, mag_dens: float, field_gauss: float, rw_factor: float,
+                  earth: bool, sigma_rest: float, tau: float, om2: float, q_att_jerk: float, dt_blk: float,
+                  w_mean: Array, a_mean: Array, sig_mean: float, gravity: float,
                   g0: int, a0: int, m0: int, dip_col: int, dev_bail: float, use_acc: bool, dev_gain: float,
                   lever_m: float, var_v: float, z_mag: Array, var_mag: float, hold_acc: int, hold_mag: int,
                   gates: Array, consider: NDArray[np.bool_], damp: float, yaw_var: float, max_rate: Array,
@@ -332,8 +382,9 @@ def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_n
     returned costs its boxing, ~0.5 µs.)
     """
     ok, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
-        x, P, scale, order, R_nom, w, dt, c_mag, has_mag, dyn, Wm, Wc, q, q_att_jerk, dt_blk, w_mean, a_mean,
-        sig_mean, gravity, g0, a0, m0, dip_col)
+        x, P, scale, order, R_nom, w, dt, c_mag, has_mag, dyn, Wm, Wc, rw, rate, sigma_gyr, mag_q, mag_dens,
+        field_gauss, rw_factor, earth, sigma_rest, tau, om2, two, q_att_jerk, dt_blk, w_mean, a_mean, sig_mean,
+        gravity, g0, a0, m0, dip_col)
     if not ok or dev > dev_bail:
         return (1 if ok else 0, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev, None, None, None,
                 None, True, None, False)
@@ -425,6 +476,19 @@ def _hold_col(cal: OnlineCalibrator, sensor: str, held: dict[str, bool]) -> int:
     return -1 if sl is None else int(sl.start)
 
 
+def _q_args(cal: OnlineCalibrator) -> tuple[Array, tuple[bool, float, float, float]]:
+    """The cached random-walk vector of :meth:`.noise.NoiseModel.cal_rw` (refreshed where its key changed;
+    :func:`block_q_kernel` sets its mag-bias entries from the state) and (whether the mag has a spec, its
+    density, the field's gauss, rw_factor) — the base Q's inputs; the fast path has no extensions."""
+    nm = cal._noise
+    c = cal.config
+    if nm._rw_key != (cal.lay.n, float(c.rw_factor)) or nm._rw_cache.shape[0] != cal.lay.n:
+        cal._cal_rw()
+    mag = nm.specs.get("mag")
+    return nm._rw_cache, (mag is not None, nm._density(mag) if mag is not None else 0.0, FIELD_GAUSS,
+                          float(c.rw_factor))
+
+
 def set_merged(on: bool) -> bool:
     """One compiled call per ordinary motion block (:func:`motion_kernel`, the default) or two
     (:func:`predict_kernel`, :func:`update_fold_kernel`: what a block whose prediction raises an event takes);
@@ -436,6 +500,7 @@ def set_merged(on: bool) -> bool:
 
 _merged = True
 _TWO = 2.0  # the squares' exponent, a run-time value in the kernels (see motion_kernel)
+_OM2 = OMEGA_E_HORIZONTAL_RMS**2  # Ω_h² as .vehicle.earth_rate_noise forms it (a Python **2: libm's pow)
 
 
 def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float],
@@ -456,7 +521,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
     dt_blk = float(t[-1] - cal._t_last)
     s_g = n["gyro"]
-    q = st.earth_rate_q(cal, cal._process_noise(dt_blk, s_g), dt_blk)
+    rw, q_args = _q_args(cal)
     jerk = 0.0
     if L >= 2:
         noise = float(B.jerk_n[b]) * 6.0 * (s_g * dt_blk / L / 4) ** 2
@@ -483,7 +548,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         (stage, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev, x, P, nis, status, solved,
          R_new, fine) = motion_kernel(
             cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
-            lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
+            c.vehicle_accel_tau, _OM2, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
             mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates, lay.consider,
             float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
@@ -505,7 +571,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     else:
         ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
             cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
-            lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
+            c.vehicle_accel_tau, _OM2, _TWO, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP)
         if not ok:
             cal._diverged("covariance is not positive definite", tl)

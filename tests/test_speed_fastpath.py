@@ -287,3 +287,79 @@ def test_the_compiled_block_q_equals_the_python_process_noise(vehicle: bool) -> 
                                       cal.config.vehicle_accel_tau, fastpath._OM2, fastpath._TWO)
         assert np.array_equal(ref, new, equal_nan=True), trial
         assert (ref[g0] > rw[g0] * dt) == vehicle and ref[0] > 0  # the floor topped the first axis up
+
+
+def _old_trace_row(t, x, sig, lay, nis_last):
+    """The trace row as it was built before its columns were cached (one key at a time from lay.public())."""
+    row = {"t": t}
+    for i, nm in lay.public():
+        row[nm] = float(x[i])
+        row[nm + ".sigma"] = float(sig[i])
+    for s, v in nis_last.items():
+        row[f"nis.{s}"] = v
+    return row
+
+
+def test_the_trace_row_from_cached_columns_equals_the_one_built_key_by_key() -> None:
+    """outputs.trace_row (columns cached per layout) against the row built key by key from lay.public(): the
+    same keys in the same order and the same values, for the base layout and one with hold offsets and an
+    extension (left out / kept), and after the layout changed."""
+    from onlinecal.ukf.outputs import trace_row
+    from onlinecal.ukf.state import StateLayout
+
+    rng = np.random.default_rng(2)
+    for lay in (StateLayout(), StateLayout(("temperature_bias:gyro",), ("accel", "mag")), StateLayout((), ("mag",))):
+        x, sig = rng.normal(size=lay.n), rng.random(lay.n)
+        nis = {"accel": 1.5, "mag": float("nan")}
+        new, old = trace_row(2.5, x, sig, lay, nis), _old_trace_row(2.5, x, sig, lay, nis)
+        assert list(new) == list(old) and not any(k.startswith("hold.") for k in new)
+        assert np.array_equal(list(new.values()), list(old.values()), equal_nan=True)
+
+
+@pytest.mark.parametrize("vehicle", [False, True])
+def test_the_inline_nis_bookkeeping_equals_gated_bookkeeping(vehicle: bool) -> None:
+    """fastpath._finish_motion's NIS bookkeeping (the kernel's status and NIS arrays read as Python values)
+    against step.gated_bookkeeping on the UpdateResult it replaced, block by block: ok, soft-gated and
+    dropped updates of accel and mag, accel alone, mag alone, windows completing (a run far above the band
+    declares a divergence), a vehicle-inflated accel R, and the numerical failures (NaN, inf, a negative
+    NIS) that declare one at once — the same NIS statistics, events and divergences."""
+    from onlinecal.ukf import step
+    from onlinecal.ukf.kernels_unscented import _STATUS
+    from onlinecal.ukf.unscented import UpdateResult
+
+    rng = np.random.default_rng(9 + vehicle)
+    from onlinecal.ukf.filter import UKFConfig
+
+    a, b = (OnlineCalibrator(None, UKFConfig(nis_window=10)) for _ in range(2))  # windows complete within the run
+    var_v = 4.0 * a.config.vehicle_accel_sigma**2 if vehicle else 0.0
+    k_v = var_v / a.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
+    with pytest.warns(dv.DivergenceWarning):
+        for blk in range(600):
+            use_acc, has_mag = [(True, True), (True, False), (False, True)][blk % 3]
+            nb = int(use_acc) + int(has_mag)
+            nis = rng.chisquare(3, nb) * (40.0 if 200 <= blk < 330 else 1.0)  # a run far above the band
+            if blk in (77, 400, 500):
+                nis[0] = [np.nan, np.inf, -1e-6][(77, 400, 500).index(blk)]
+            status = rng.choice([0, 0, 0, 1, 2, -1], nb).astype(np.int64)
+            tl = 0.1 * (blk + 1)
+            for cal in (a, b):
+                cal.R_nom = np.eye(3)
+            fastpath._finish_motion(a, step, a.x.copy(), a.P.copy(), nis, status, True, np.eye(3), True, use_acc,
+                                    has_mag, var_v, tl)
+            res = UpdateResult(b.x.copy(), b.P.copy())
+            names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
+            for k, s in enumerate(names):
+                if status[k] >= 0:
+                    res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
+            k_div = b._div.count
+            step.gated_bookkeeping(b, res, tl, True, k_v)
+            if b._div.count == k_div:
+                step.commit_folded(b, np.eye(3), res.x, res.P, True, tl)
+            assert a._nis.stats == b._nis.stats and a._n_blocks == b._n_blocks, blk
+            assert [(e["kind"], e["t"], e["detail"]) for e in a.events] == [
+                (e["kind"], e["t"], e["detail"]) for e in b.events], blk
+    kinds = [e["detail"] for e in a.events if e["kind"] == "divergence"]
+    assert all(any(w in d for d in kinds) for w in ("NaN", "infinite", "negative")), kinds
+    assert any("window mean" in d for d in kinds), kinds
+    acc = a._nis.stats["accel"]["vehicle"] if vehicle else a._nis.stats["accel"]  # (the inflated accel's stream)
+    assert acc["rejected"] > 10 and acc["updates"] > 10 and a._nis.stats["mag"]["rejected"] > 10

@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 
 from ..specs import FIELD_GAUSS
 from . import kernels
+from .divergence import NIS_NEGATIVE_TOL, nis_failure
 from .kernels import _njit
 from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_kernel, rot_log_rel_kernel
 from .kernels_unscented import _STATUS, _identity
@@ -605,12 +606,26 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, nis: Arra
         raise np.linalg.LinAlgError("Singular matrix")
     k_div = cal._div.count
     k_v = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
-    res = UpdateResult(x, P)
-    names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
-    for k, s in enumerate(names):
-        if status[k] >= 0:
-            res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
-    st.gated_bookkeeping(cal, res, tl, True, k_v)
+    # .step.gated_bookkeeping's loop on the kernel's arrays as Python floats and ints, without the
+    # UpdateResult it reads them from (issue 15): the same records in the same order
+    codes, vals = status.tolist(), nis.tolist()
+    k = 0
+    for s, on in (("accel", use_acc), ("mag", has_mag)):
+        if not on:
+            continue
+        code, v = codes[k], vals[k]
+        k += 1
+        if code < 0:
+            continue
+        if not (v >= NIS_NEGATIVE_TOL and v != math.inf):  # divergence.nis_failure (NaN fails the first)
+            cal._diverged(f"{s}: {nis_failure(v)}", tl)
+            break
+        if code == 2:  # dropped: counted, out of the windows
+            cal._nis.reject(s, k_v)
+            continue
+        cal._nis_record(s, v, tl, k_v)
+        if code == 1:  # soft-gated
+            cal._nis.reject(s, k_v)
     if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands
         st.commit_folded(cal, R_new, x, P, fine, tl)
 

@@ -363,3 +363,56 @@ def test_the_inline_nis_bookkeeping_equals_gated_bookkeeping(vehicle: bool) -> N
     assert any("window mean" in d for d in kinds), kinds
     acc = a._nis.stats["accel"]["vehicle"] if vehicle else a._nis.stats["accel"]  # (the inflated accel's stream)
     assert acc["rejected"] > 10 and acc["updates"] > 10 and a._nis.stats["mag"]["rejected"] > 10
+
+
+def test_the_compiled_rail_pass_equals_the_rail_detector_block_by_block() -> None:
+    """RailDetector.prepass (every block of a feed in one compiled call per sensor) against RailDetector.check
+    block by block: the same clip flags, saturation events (with the rail they name) and state (learnt rails,
+    open runs, clipped stretch), over feeds that carry runs and rails from one to the next — gyro and accel
+    readings clipped on some axes at rails they reach in stretches longer than rail_run, runs that cross block
+    and feed boundaries, stretches below rail_min, NaN readings; a feed with a block of rail_run samples or
+    more is left to the per-block rule (None, nothing changed)."""
+    from onlinecal.ukf.blocks import block_stats
+    from onlinecal.ukf.detectors import RailDetector
+
+    rng = np.random.default_rng(4)
+    rail_min, rail_run = {"gyro": 1.0, "accel": 14.7}, 40
+    fast, ref = RailDetector(), RailDetector()
+    t0, n_events = 0.0, 0
+    for feed in range(12):
+        N = 600
+        t = t0 + 0.005 * np.arange(1, N + 1)
+        w = np.cumsum(rng.normal(0, 0.08, (N, 3)), axis=0) * (1 + feed % 3)
+        a = np.cumsum(rng.normal(0, 0.6, (N, 3)), axis=0) + 9.8
+        w = np.clip(w, -2.5, 2.5 - 0.5 * (feed % 2))  # rails (the limit moves: the learnt rail is a minimum)
+        a = np.clip(a, -16.0, 16.0)
+        w = np.round(w, 3)  # a lattice: identical readings in a row away from the rails too
+        if feed == 5:
+            w[100:110, 1] = np.nan
+        if feed == 7:  # the last samples at a rail: the run carries into the next feed
+            w[-60:, 0] = 2.5
+        bounds = []
+        i = 0
+        while i < N:
+            L = int(rng.integers(2, rail_run)) if feed != 9 else 50  # feed 9: long blocks (the per-block rule)
+            bounds.append((i, min(N, i + L)))
+            i += L
+        if bounds[-1][1] - bounds[-1][0] < 2:
+            bounds[-2] = (bounds[-2][0], N)
+            bounds.pop()
+        B = block_stats(t, w, a, np.zeros(0), np.zeros((0, 3)), bounds, None, np.zeros(3), False)
+        pre = fast.prepass(B, w, a, rail_min, rail_run)
+        for b, (i, j) in enumerate(bounds):
+            clip, ev = ref.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b], rail_min, rail_run,
+                                 (B.w_runs[b], B.a_runs[b]))
+            if pre is None:
+                clip_f, ev_f = fast.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b], rail_min, rail_run,
+                                          (B.w_runs[b], B.a_runs[b]))
+            else:
+                clip_f, ev_f = {"mag": False, "gyro": pre[0][b], "accel": pre[1][b]}, pre[2].get(b, [])
+            assert clip_f == clip and ev_f == ev, (feed, b)
+            n_events += len(ev)
+        assert (pre is None) == (feed == 9)
+        assert fast.rail == ref.rail and fast.run == ref.run and fast.clip_on == ref.clip_on, feed
+        t0 = float(t[-1])
+    assert n_events >= 6 and set(ref.rail) == {"gyro", "accel"}, (n_events, ref.rail)

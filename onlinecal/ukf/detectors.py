@@ -186,6 +186,42 @@ class RailDetector:
         return out, events
 
 
+    def prepass(self, B: Blocks, w: Array, a: Array, rail_min: dict[str, float], rail_run: int
+                ) -> tuple[list[bool], list[bool], dict[int, list[tuple[str, str]]]] | None:
+        """:meth:`check` for every block of ``B`` at once (the buffers w, a (N, 3) raw), in one compiled call per
+        sensor (:func:`.kernels_detectors.rail_pass_kernel`; issue 15), where every block is a usual one
+        (1 < L < ``rail_run``; else None and nothing is changed: the caller checks block by block). Returns the
+        gyro's and the accel's clip flag per block and the events per block index; the detector's state is
+        that after the last block (the blocks are then filtered in order, each taking its row)."""
+        L = B.hi - B.lo
+        if not L.size or not bool(((L > 1) & (L < rail_run)).all()):
+            return None
+        from .kernels_detectors import rail_pass_kernel
+
+        hits: list[list[bool]] = []
+        events: dict[int, list[tuple[str, str]]] = {}
+        for s, v, amax, rr in (("gyro", w, B.w_absmax, B.w_runs), ("accel", a, B.a_absmax, B.a_runs)):
+            learnt = s in self.rail
+            rail = np.array(self.rail[s] if learnt else [math.inf] * 3, dtype=float)
+            carry = self.run.get(s)
+            cv = np.array([c[0] for c in carry] if carry is not None else [0.0] * 3, dtype=float)
+            cn = np.array([c[1] for c in carry] if carry is not None else [0] * 3, dtype=np.intp)
+            hit, ev, rail_at, learnt, has_carry, clip_on = rail_pass_kernel(
+                np.ascontiguousarray(amax), np.ascontiguousarray(rr), v[B.lo], v[B.hi - 1], L, rail, learnt, cv, cn,
+                carry is not None, self.clip_on[s], float(rail_min[s]), int(rail_run))
+            if learnt:
+                self.rail[s] = rail.tolist()
+            if has_carry:
+                self.run[s] = list(zip(cv.tolist(), cn.tolist(), strict=True))
+            else:
+                self.run.pop(s, None)
+            self.clip_on[s] = bool(clip_on)
+            hits.append(hit.tolist())
+            for b in np.flatnonzero(ev).tolist():
+                events.setdefault(b, []).append(_saturation_event(s, rail_at[b].tolist()))
+        return hits[0], hits[1], events
+
+
 def _all_below(v: list[float], bound: float) -> bool:
     """float(np.max(v)) < bound for a few Python floats v (False where one is NaN, as np.max's NaN)."""
     return all(x < bound for x in v)

@@ -255,8 +255,8 @@ class RestDetector:
         """Judge block ``b`` of ``B`` with the per-sample noise σ ``n``; True once in a rest. ``n_mean``: the σ
         whose σ²/L is a block mean's variance (:meth:`.noise.NoiseModel.for_means`; correlated samples
         average down less), for the change of the means; ``n`` where not given."""
-        L = int(B.hi[b] - B.lo[b])
-        n_m = int(B.mhi[b] - B.mlo[b])
+        L = B.hi_l[b] - B.lo_l[b]
+        n_m = B.mhi_l[b] - B.mlo_l[b]
         gm, am = B.w_mean[b], B.a_mean[b]
         mm = B.m_mean[b] if n_m else None
         sg, sa = n["gyro"], n["accel"]
@@ -295,7 +295,7 @@ class HoldTracker:
         new = False
         if not sensors:
             return out, resets, new
-        cnt = {"accel": int(B.hi[b] - B.lo[b]), "mag": int(B.mhi[b] - B.mlo[b])}
+        cnt = {"accel": B.hi_l[b] - B.lo_l[b], "mag": B.mhi_l[b] - B.mlo_l[b]}
         for s, mean, std, pi in (("accel", B.a_mean[b], B.a_std[b], 1), ("mag", B.m_mean[b], B.m_std[b], 2)):
             if s not in sensors or cnt[s] < 2:
                 self.held[s] = False

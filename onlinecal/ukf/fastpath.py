@@ -513,20 +513,20 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     st = _step_module()
     c = cal.config
     tl = float(t[-1])
-    i, j = int(B.lo[b]), int(B.hi[b])
+    i, j = B.lo_l[b], B.hi_l[b]
     L = j - i
     has_mag = bool(use_mag)
     c_mag = _EMPTY1
     if has_mag:
-        k0, n_m0 = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
+        k0, n_m0 = B.mlo_l[b] - B.mlo_l[0], B.mhi_l[b] - B.mlo_l[b]
         c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
     dt_blk = float(t[-1] - cal._t_last)
     s_g = n["gyro"]
     rw, q_args = _q_args(cal)
     jerk = 0.0
     if L >= 2:
-        noise = float(B.jerk_n[b]) * 6.0 * (s_g * dt_blk / L / 4) ** 2
-        jerk = max(0.0, float(B.jerk[b]) - noise) / 3.0
+        noise = B.jerk_n_l[b] * 6.0 * (s_g * dt_blk / L / 4) ** 2
+        jerk = max(0.0, B.jerk_l[b] - noise) / 3.0
     lay = cal.lay
     nst = lay.n
     lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
@@ -534,7 +534,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     sig_mean = n["accel"] / math.sqrt(t.size)
     a_mean = B.a_mean[b]
     use_acc = not clip["accel"]
-    n_m = int(B.mhi[b] - B.mlo[b])
+    n_m = B.mhi_l[b] - B.mlo_l[b]
     var_mag = n["mag"] ** 2 / max(n_m, 1)
     yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
     gates = np.array([cal._gates["accel"], cal._gates["mag"]])

@@ -67,7 +67,7 @@ def filter_block(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, w: Array, a
     """One filter block: gap check, lattice of a late mag, rail, then attitude start or filter step. ``rails``:
     the rail detector's flags and events of every block of ``B`` (:meth:`.detectors.RailDetector.prepass`),
     or None to run it on this block."""
-    i, j, ml, mh = int(B.lo[b]), int(B.hi[b]), int(B.mlo[b]), int(B.mhi[b])
+    i, j, ml, mh = B.lo_l[b], B.hi_l[b], B.mlo_l[b], B.mhi_l[b]
     tb = t[i:j]
     t0 = cal._t_last if cal._att_ok and cal._t_last is not None else None
     if cal._t_last is not None and tb[0] - cal._t_last > cal.config.max_gap_s:

@@ -416,3 +416,37 @@ def test_the_compiled_rail_pass_equals_the_rail_detector_block_by_block() -> Non
         assert fast.rail == ref.rail and fast.run == ref.run and fast.clip_on == ref.clip_on, feed
         t0 = float(t[-1])
     assert n_events >= 6 and set(ref.rail) == {"gyro", "accel"}, (n_events, ref.rail)
+
+
+def test_the_motion_blocks_constants_follow_the_layout_and_the_noise_model() -> None:
+    """fastpath._block_consts (λ + n, the Cholesky order, the random walk and Q's constants, the gates: kept on
+    the calibrator) against the values computed afresh, after each thing it depends on changed: a hold
+    offset appended (a new layout of 43 states), the gates, the sigma-point spread, rw_factor."""
+    from onlinecal.ukf.kernels_unscented import _identity
+
+    cal = OnlineCalibrator(None)
+
+    def fresh():
+        c, lay = cal.config, cal.lay
+        lam = c.sp_alpha**2 * (lay.n + c.sp_kappa) - lay.n
+        order = _identity(lay.n) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
+        rw, q_args = fastpath._q_args(cal)
+        return lam + lay.n, order, rw.copy(), q_args, [cal._gates["accel"], cal._gates["mag"]]
+
+    def check():
+        got, ref = fastpath._block_consts(cal), fresh()
+        assert got[0] == ref[0] and np.array_equal(got[1], ref[1]) and np.array_equal(got[2], ref[2])
+        assert got[3] == ref[3] and got[4].tolist() == ref[4] and got[2].shape == (cal.n,)
+
+    check()
+    first = fastpath._block_consts(cal)
+    assert fastpath._block_consts(cal) is first  # kept while nothing changed
+    cal._add_hold("mag", 0.01)
+    check()
+    cal._gates = {"accel": 5.0, "mag": 9.0}
+    check()
+    cal.config.sp_alpha = 0.5
+    check()
+    cal.config.rw_factor = 2e-3
+    check()
+    assert fastpath._block_consts(cal)[2][5] == pytest.approx(first[2][5] * 4)  # a bias entry: (2 × rw)²

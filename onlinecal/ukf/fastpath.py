@@ -490,6 +490,27 @@ def _q_args(cal: OnlineCalibrator) -> tuple[Array, tuple[bool, float, float, flo
                           float(c.rw_factor))
 
 
+def _block_consts(cal: OnlineCalibrator) -> tuple[Any, ...]:
+    """What a motion block's call takes that changes only with the layout, the noise model, the gates or the
+    sigma-point settings: (λ + n, the Cholesky's order, :func:`_q_args`, the gates (accel, mag) as an
+    array), kept on the calibrator and rebuilt where any of them changed (issue 15: ~5 µs of Python per
+    block, the specs' hashes of the density's cache among them). Not in a checkpoint: a resumed filter
+    builds it at its first block."""
+    k = cal.__dict__.get("_fast_consts")
+    lay, nm, c, g = cal.lay, cal._noise, cal.config, cal._gates
+    if (k is not None and k[0] is lay and k[1] is nm and k[2] is g and k[3] == (c.sp_alpha, c.sp_kappa, c.rw_factor)
+            and k[4] is nm._rw_cache and nm._rw_key == k[5]):
+        return k[6]
+    nst = lay.n
+    lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
+    order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
+    rw, q_args = _q_args(cal)
+    vals = (lam + nst, order, rw, q_args, np.array([g["accel"], g["mag"]]))
+    cal.__dict__["_fast_consts"] = (lay, nm, g, (c.sp_alpha, c.sp_kappa, c.rw_factor), nm._rw_cache, nm._rw_key,
+                                    vals)
+    return vals
+
+
 def set_merged(on: bool) -> bool:
     """One compiled call per ordinary motion block (:func:`motion_kernel`, the default) or two
     (:func:`predict_kernel`, :func:`update_fold_kernel`: what a block whose prediction raises an event takes);
@@ -513,6 +534,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     st = _step_module()
     c = cal.config
     tl = float(t[-1])
+    scale, order, rw, q_args, gates = _block_consts(cal)
     i, j = B.lo_l[b], B.hi_l[b]
     L = j - i
     has_mag = bool(use_mag)
@@ -520,24 +542,21 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     if has_mag:
         k0, n_m0 = B.mlo_l[b] - B.mlo_l[0], B.mhi_l[b] - B.mlo_l[b]
         c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
-    dt_blk = float(t[-1] - cal._t_last)
+    t_last = cal._t_last
+    assert t_last is not None  # (a motion step follows a filtered block)
+    dt_blk = tl - t_last  # (the numpy subtraction's double)
     s_g = n["gyro"]
-    rw, q_args = _q_args(cal)
     jerk = 0.0
     if L >= 2:
         noise = B.jerk_n_l[b] * 6.0 * (s_g * dt_blk / L / 4) ** 2
         jerk = max(0.0, B.jerk_l[b] - noise) / 3.0
     lay = cal.lay
-    nst = lay.n
-    lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
-    order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
     sig_mean = n["accel"] / math.sqrt(t.size)
     a_mean = B.a_mean[b]
     use_acc = not clip["accel"]
     n_m = B.mhi_l[b] - B.mlo_l[b]
     var_mag = n["mag"] ** 2 / max(n_m, 1)
     yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
-    gates = np.array([cal._gates["accel"], cal._gates["mag"]])
     hold_a, hold_m = _hold_col(cal, "accel", held), _hold_col(cal, "mag", held)
     mod = cal._models.acc
     veh = cal._vehicle
@@ -548,7 +567,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         cov = cal._coverage
         (stage, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev, x, P, nis, status, solved,
          R_new, fine) = motion_kernel(
-            cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
             lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
             c.vehicle_accel_tau, _OM2, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
@@ -571,7 +590,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
             return
     else:
         ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
-            cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
             lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
             c.vehicle_accel_tau, _OM2, _TWO, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP)

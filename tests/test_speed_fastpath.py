@@ -344,8 +344,9 @@ def test_the_inline_nis_bookkeeping_equals_gated_bookkeeping(vehicle: bool) -> N
             tl = 0.1 * (blk + 1)
             for cal in (a, b):
                 cal.R_nom = np.eye(3)
-            fastpath._finish_motion(a, step, a.x.copy(), a.P.copy(), nis, status, True, np.eye(3), True, use_acc,
-                                    has_mag, var_v, tl)
+            codes = status.tolist() if blk % 2 else [float(v) for v in status]  # (motion_kernel's: floats)
+            fastpath._finish_motion(a, step, a.x.copy(), a.P.copy(), nis.tolist(), codes, True, np.eye(3),
+                                    True, use_acc, has_mag, var_v, tl)
             res = UpdateResult(b.x.copy(), b.P.copy())
             names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
             for k, s in enumerate(names):

@@ -377,18 +377,25 @@ def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_n
     about one value in a thousand).
 
     Returns (stage: 0 P not positive definite, 1 stopped after the prediction, 2 done; the prediction
-    (X, x_pred, Y, P_pred, f_body, h_body, sens_o, sens_Minv: None at stage 2), R_end of the mean (3, 3), ω
-    of the mean (3,) (None at stage 2), the deviation; the update (x, P, NIS, status, solved, R, fine: None,
-    True, None, False before stage 2)) — see the two kernels. (None, not placeholder arrays: each array
-    returned costs its boxing, ~0.5 µs.)
+    (X, x_pred, Y, P_pred, f_body, h_body, sens_o, sens_Minv, ω of the mean (3,): None at stage 2); Rs (2, 3, 3):
+    R_end of the mean, and at stage 2 the posterior's R; info (7,): the deviation, and at stage 2 whether the
+    solve succeeded and x, P are fine (1.0 / 0.0), the NIS of the accel-then-mag blocks (2, as many as used)
+    and their status (−1 where absent); the update's x, P (None before stage 2)) — see the two kernels.
+    (None, not placeholder arrays, and the small results in two arrays: each array returned costs its
+    allocation and boxing, ~1.3 µs.)
     """
     ok, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
         x, P, scale, order, R_nom, w, dt, c_mag, has_mag, dyn, Wm, Wc, rw, rate, sigma_gyr, mag_q, mag_dens,
         field_gauss, rw_factor, earth, sigma_rest, tau, om2, two, q_att_jerk, dt_blk, w_mean, a_mean, sig_mean,
         gravity, g0, a0, m0, dip_col)
+    Rs = np.zeros((2, 3, 3))  # R_end of the mean, then the posterior's (one array: each returned one is boxed)
+    info = np.zeros(7)  # dev, solved, fine, NIS (2), status (2)
+    for i in range(3):
+        for k in range(3):
+            Rs[0, i, k] = R0[i, k]
+    info[0] = dev
     if not ok or dev > dev_bail:
-        return (1 if ok else 0, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev, None, None, None,
-                None, True, None, False)
+        return (1 if ok else 0, X, x_pred, Y, P_pred, f_body, h_body, s_o, s_Mi, om, Rs, info, None, None)
     rate = math.sqrt(np.dot(om, om))  # (BLAS ddot, as np.dot in Python: the same bits)
     for i in range(3):  # MotionCoverage.add_motion: np.maximum (NaN wins), ∫|ω_i| dt
         r = abs(om[i])
@@ -404,7 +411,16 @@ def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_n
     xs, Ps, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, z_mag, has_mag, var_mag, hold_acc,
         hold_mag, gravity, Wm, Wc, gates, consider, damp, R0, yaw_var)
-    return (2, None, None, None, None, R0, None, None, None, None, None, dev, xs, Ps, nis, status, solved, R_new, fine)
+    for i in range(3):
+        for k in range(3):
+            Rs[1, i, k] = R_new[i, k]
+    info[1] = 1.0 if solved else 0.0
+    info[2] = 1.0 if fine else 0.0
+    info[5] = info[6] = -1.0
+    for k in range(nis.shape[0]):
+        info[3 + k] = nis[k]
+        info[5 + k] = status[k]
+    return (2, None, None, None, None, None, None, None, None, None, Rs, info, xs, Ps)
 
 
 @_njit
@@ -565,8 +581,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         var_v = st.vehicle_accel_now(cal, dt_blk)
         feed = c.vehicle == "auto" and not veh.active  # (vehicle_accel_from_dev feeds the detector then)
         cov = cal._coverage
-        (stage, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev, x, P, nis, status, solved,
-         R_new, fine) = motion_kernel(
+        stage, X, x_pred, Y, P_pred, f_body, h_body, s_o, s_Mi, om, Rs, info, x, P = motion_kernel(
             cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
             lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
             c.vehicle_accel_tau, _OM2, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
@@ -576,7 +591,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         if stage == 0:
             cal._diverged("covariance is not positive definite", tl)
             return
-        cal.R_nom = R_end0
+        cal.R_nom = Rs[0]
+        dev, solved, fine, nis0, nis1, st0, st1 = info.tolist()
         if stage == 2:
             if feed:  # the detector's run of blocks (dev ≤ dev_bail: it stays off, var_v stands; a var_v that
                 # depended on the prediction would break the one call: tests/test_speed_fastpath.py compares it
@@ -586,7 +602,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
                 cov.flight_s += dt_blk
             if use_mag:
                 cov.add_field(calibrated(cal, "mag", B.m_mean[b]))
-            _finish_motion(cal, st, x, P, nis, status, solved, R_new, fine, use_acc, has_mag, var_v, tl)
+            _finish_motion(cal, st, x, P, [nis0, nis1], [st0, st1], solved == 1.0, Rs[1], fine == 1.0, use_acc,
+                           has_mag, var_v, tl)
             return
     else:
         ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
@@ -614,20 +631,21 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     x, P, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
         hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
-    _finish_motion(cal, st, x, P, nis, status, solved, R_new, fine, use_acc, has_mag, var_v, tl)
+    _finish_motion(cal, st, x, P, nis.tolist(), status.tolist(), solved, R_new, fine, use_acc, has_mag, var_v, tl)
 
 
-def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, nis: Array, status: NDArray[np.int64],
+def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: list[float], codes: list[Any],
                    solved: bool, R_new: Array, fine: bool, use_acc: bool, has_mag: bool, var_v: float,
                    tl: float) -> None:
-    """The end of a motion block after its update: the NIS bookkeeping (windows, divergence) and the commit."""
+    """The end of a motion block after its update: the NIS bookkeeping (windows, divergence) and the commit.
+    ``vals``, ``codes``: the NIS and status (0 ok, 1 soft, 2 dropped, −1 none) of the accel-then-mag blocks
+    used, as Python numbers."""
     if not solved:
         raise np.linalg.LinAlgError("Singular matrix")
     k_div = cal._div.count
     k_v = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
-    # .step.gated_bookkeeping's loop on the kernel's arrays as Python floats and ints, without the
+    # .step.gated_bookkeeping's loop on the kernel's values as Python numbers, without the
     # UpdateResult it reads them from (issue 15): the same records in the same order
-    codes, vals = status.tolist(), nis.tolist()
     k = 0
     for s, on in (("accel", use_acc), ("mag", has_mag)):
         if not on:

@@ -219,7 +219,8 @@ def where_time_goes(d, top: int = 12) -> None:
 # the parts of a block, timed by wrapping them (module, attribute, label); nested parts are inside their caller's
 _PARTS = [
     ("onlinecal.ukf.stream", "block_stats", "block statistics (vectorised over a feed)"),
-    ("onlinecal.ukf.detectors:RailDetector", "check", "rail detector"),
+    ("onlinecal.ukf.detectors:RailDetector", "prepass", "rail detector (compiled, every block of a feed at once)"),
+    ("onlinecal.ukf.detectors:RailDetector", "check", "rail detector (per block: the reference paths)"),
     ("onlinecal.ukf.step", "mag_block", "magnetometer start (collect, cold fit tried once a second)"),
     ("onlinecal.ukf.filter:OnlineCalibrator", "_spec_noise", "spec noise (cached on the rate, times the mag unit)"),
     ("onlinecal.ukf.magdisturb:MagDisturbanceGate", "gate", "magnetic disturbance gate"),
@@ -229,9 +230,9 @@ _PARTS = [
     ("onlinecal.ukf.step", "vehicle_rest_noise", "vehicle detector (vibration)"),
     ("onlinecal.ukf.step", "rest_step", "rest step (general path)"),
     ("onlinecal.ukf.step", "motion_step", "motion step, of which:"),
-    ("onlinecal.ukf.filter:OnlineCalibrator", "_process_noise", "  process noise Q (Python)"),
-    ("onlinecal.ukf.step", "earth_rate_q", "  Earth-rate allowance on Q (Python)"),
-    ("onlinecal.ukf.fastpath", "motion_kernel", "  motion_kernel (compiled: predict, coverage, update, fold)"),
+    ("onlinecal.ukf.filter:OnlineCalibrator", "_process_noise", "  process noise Q (Python: rest step, general path)"),
+    ("onlinecal.ukf.step", "earth_rate_q", "  Earth-rate allowance on Q (Python: general path)"),
+    ("onlinecal.ukf.fastpath", "motion_kernel", "  motion_kernel (compiled: Q, predict, coverage, update, fold)"),
     ("onlinecal.ukf.fastpath", "predict_kernel", "  predict_kernel (compiled; a block that raises an event)"),
     ("onlinecal.ukf.step", "vehicle_accel_from_dev", "  vehicle detector (deviation)"),
     ("onlinecal.ukf.vehicle:MotionCoverage", "add_motion", "  motion coverage (Python; a block that raises an event)"),

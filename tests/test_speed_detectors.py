@@ -394,6 +394,7 @@ def test_rest_detector_on_python_floats_makes_the_numpy_decisions() -> None:
                         a_mean=level + rng.normal(0, 0.012, (nb, 3)),
                         m_mean=level * 0.1 + rng.normal(0, 1.5e-3, (nb, 3)), w_std=rng.uniform(0, 0.0125, (nb, 3)),
                         a_std=rng.uniform(0, 0.083, (nb, 3)))
+    B.lo_l, B.hi_l, B.mlo_l, B.mhi_l = lo.tolist(), hi.tolist(), mlo.tolist(), B.mhi.tolist()  # Blocks' lists
     for arr in (B.w_mean, B.a_std, B.m_mean):
         arr[rng.random(nb) < 0.01, 1] = np.nan
     n = {"gyro": 3e-3, "accel": 0.02, "mag": 3e-3}

@@ -253,3 +253,201 @@ def test_the_compiled_third_difference_median_equals_the_numpy_one() -> None:
         new = third_diff_var(v, t, seg, n_seg)
     assert np.isnan(ref).sum() >= 3 and np.isfinite(ref).sum() > 100
     assert np.array_equal(ref, new, equal_nan=True)
+
+
+@pytest.mark.parametrize("vehicle", [False, True])
+def test_the_compiled_block_q_equals_the_python_process_noise(vehicle: bool) -> None:
+    """block_q_kernel (the block's base Q inside the compiled motion call) against the Python it replaced,
+    :func:`onlinecal.ukf.step.earth_rate_q` of ``OnlineCalibrator._process_noise`` (the random walk with the mag
+    bias's entries from the state's mag scale, the gyro's angle random walk on the attitude, and on a vehicle
+    the Earth-rate floor on the gyro bias — some axes below it, one above, one NaN — and the horizontal
+    allowance on the attitude): the same bits, over mag scales and block lengths."""
+    from onlinecal.ukf import step
+    from onlinecal.ukf.layout import SENSOR_SLICE
+
+    rng = np.random.default_rng(3 + vehicle)
+    cal = OnlineCalibrator(None)
+    cal._rate = 200.0
+    cal._vehicle.active = vehicle
+    g0, m0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["mag"].start
+    floor = (cal.config.rest_rate_sigma / 1.0) ** 2
+    for trial in range(40):
+        cal.x[m0 + 3 : m0 + 6] = rng.uniform(0.001, 3.0, 3)  # mag scale: gauss to milli-gauss units
+        cal.x[g0 + 3 : g0 + 6] = 1.0 + rng.normal(0, 0.05, 3)
+        A = rng.normal(size=(cal.n, cal.n)) * 1e-3
+        cal.P = A @ A.T + np.eye(cal.n) * 1e-9
+        cal.P[g0, g0], cal.P[g0 + 1, g0 + 1] = floor * rng.uniform(0.1, 0.9), floor * rng.uniform(1.1, 3.0)
+        if trial == 7:
+            cal.P[g0 + 2, g0 + 2] = np.nan  # a NaN passes (np.maximum's rule), as in the Python
+        dt, s_g = float(rng.uniform(0.02, 0.3)), float(rng.uniform(1e-4, 1e-2))
+        ref = step.earth_rate_q(cal, cal._process_noise(dt, s_g), dt).copy()
+        rw, (mag_q, dens, fg, rwf) = fastpath._q_args(cal)
+        new = fastpath.block_q_kernel(rw, dt, cal._rate, s_g, SENSOR_SLICE["mag"].start if mag_q else -1, dens, fg,
+                                      rwf, cal.x, cal.P, vehicle, g0, g0 + 3, cal.config.rest_rate_sigma,
+                                      cal.config.vehicle_accel_tau, fastpath._OM2, fastpath._TWO)
+        assert np.array_equal(ref, new, equal_nan=True), trial
+        assert (ref[g0] > rw[g0] * dt) == vehicle and ref[0] > 0  # the floor topped the first axis up
+
+
+def _old_trace_row(t, x, sig, lay, nis_last):
+    """The trace row as it was built before its columns were cached (one key at a time from lay.public())."""
+    row = {"t": t}
+    for i, nm in lay.public():
+        row[nm] = float(x[i])
+        row[nm + ".sigma"] = float(sig[i])
+    for s, v in nis_last.items():
+        row[f"nis.{s}"] = v
+    return row
+
+
+def test_the_trace_row_from_cached_columns_equals_the_one_built_key_by_key() -> None:
+    """outputs.trace_row (columns cached per layout) against the row built key by key from lay.public(): the
+    same keys in the same order and the same values, for the base layout and one with hold offsets and an
+    extension (left out / kept), and after the layout changed."""
+    from onlinecal.ukf.outputs import trace_row
+    from onlinecal.ukf.state import StateLayout
+
+    rng = np.random.default_rng(2)
+    for lay in (StateLayout(), StateLayout(("temperature_bias:gyro",), ("accel", "mag")), StateLayout((), ("mag",))):
+        x, sig = rng.normal(size=lay.n), rng.random(lay.n)
+        nis = {"accel": 1.5, "mag": float("nan")}
+        new, old = trace_row(2.5, x, sig, lay, nis), _old_trace_row(2.5, x, sig, lay, nis)
+        assert list(new) == list(old) and not any(k.startswith("hold.") for k in new)
+        assert np.array_equal(list(new.values()), list(old.values()), equal_nan=True)
+
+
+@pytest.mark.parametrize("vehicle", [False, True])
+def test_the_inline_nis_bookkeeping_equals_gated_bookkeeping(vehicle: bool) -> None:
+    """fastpath._finish_motion's NIS bookkeeping (the kernel's status and NIS arrays read as Python values)
+    against step.gated_bookkeeping on the UpdateResult it replaced, block by block: ok, soft-gated and
+    dropped updates of accel and mag, accel alone, mag alone, windows completing (a run far above the band
+    declares a divergence), a vehicle-inflated accel R, and the numerical failures (NaN, inf, a negative
+    NIS) that declare one at once — the same NIS statistics, events and divergences."""
+    from onlinecal.ukf import step
+    from onlinecal.ukf.kernels_unscented import _STATUS
+    from onlinecal.ukf.unscented import UpdateResult
+
+    rng = np.random.default_rng(9 + vehicle)
+    from onlinecal.ukf.filter import UKFConfig
+
+    a, b = (OnlineCalibrator(None, UKFConfig(nis_window=10)) for _ in range(2))  # windows complete within the run
+    var_v = 4.0 * a.config.vehicle_accel_sigma**2 if vehicle else 0.0
+    k_v = var_v / a.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
+    with pytest.warns(dv.DivergenceWarning):
+        for blk in range(600):
+            use_acc, has_mag = [(True, True), (True, False), (False, True)][blk % 3]
+            nb = int(use_acc) + int(has_mag)
+            nis = rng.chisquare(3, nb) * (40.0 if 200 <= blk < 330 else 1.0)  # a run far above the band
+            if blk in (77, 400, 500):
+                nis[0] = [np.nan, np.inf, -1e-6][(77, 400, 500).index(blk)]
+            status = rng.choice([0, 0, 0, 1, 2, -1], nb).astype(np.int64)
+            tl = 0.1 * (blk + 1)
+            for cal in (a, b):
+                cal.R_nom = np.eye(3)
+            codes = status.tolist() if blk % 2 else [float(v) for v in status]  # (motion_kernel's: floats)
+            fastpath._finish_motion(a, step, a.x.copy(), a.P.copy(), nis.tolist(), codes, True, np.eye(3),
+                                    True, use_acc, has_mag, var_v, tl)
+            res = UpdateResult(b.x.copy(), b.P.copy())
+            names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
+            for k, s in enumerate(names):
+                if status[k] >= 0:
+                    res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
+            k_div = b._div.count
+            step.gated_bookkeeping(b, res, tl, True, k_v)
+            if b._div.count == k_div:
+                step.commit_folded(b, np.eye(3), res.x, res.P, True, tl)
+            assert a._nis.stats == b._nis.stats and a._n_blocks == b._n_blocks, blk
+            assert [(e["kind"], e["t"], e["detail"]) for e in a.events] == [
+                (e["kind"], e["t"], e["detail"]) for e in b.events], blk
+    kinds = [e["detail"] for e in a.events if e["kind"] == "divergence"]
+    assert all(any(w in d for d in kinds) for w in ("NaN", "infinite", "negative")), kinds
+    assert any("window mean" in d for d in kinds), kinds
+    acc = a._nis.stats["accel"]["vehicle"] if vehicle else a._nis.stats["accel"]  # (the inflated accel's stream)
+    assert acc["rejected"] > 10 and acc["updates"] > 10 and a._nis.stats["mag"]["rejected"] > 10
+
+
+def test_the_compiled_rail_pass_equals_the_rail_detector_block_by_block() -> None:
+    """RailDetector.prepass (every block of a feed in one compiled call per sensor) against RailDetector.check
+    block by block: the same clip flags, saturation events (with the rail they name) and state (learnt rails,
+    open runs, clipped stretch), over feeds that carry runs and rails from one to the next — gyro and accel
+    readings clipped on some axes at rails they reach in stretches longer than rail_run, runs that cross block
+    and feed boundaries, stretches below rail_min, NaN readings; a feed with a block of rail_run samples or
+    more is left to the per-block rule (None, nothing changed)."""
+    from onlinecal.ukf.blocks import block_stats
+    from onlinecal.ukf.detectors import RailDetector
+
+    rng = np.random.default_rng(4)
+    rail_min, rail_run = {"gyro": 1.0, "accel": 14.7}, 40
+    fast, ref = RailDetector(), RailDetector()
+    t0, n_events = 0.0, 0
+    for feed in range(12):
+        N = 600
+        t = t0 + 0.005 * np.arange(1, N + 1)
+        w = np.cumsum(rng.normal(0, 0.08, (N, 3)), axis=0) * (1 + feed % 3)
+        a = np.cumsum(rng.normal(0, 0.6, (N, 3)), axis=0) + 9.8
+        w = np.clip(w, -2.5, 2.5 - 0.5 * (feed % 2))  # rails (the limit moves: the learnt rail is a minimum)
+        a = np.clip(a, -16.0, 16.0)
+        w = np.round(w, 3)  # a lattice: identical readings in a row away from the rails too
+        if feed == 5:
+            w[100:110, 1] = np.nan
+        if feed == 7:  # the last samples at a rail: the run carries into the next feed
+            w[-60:, 0] = 2.5
+        bounds = []
+        i = 0
+        while i < N:
+            L = int(rng.integers(2, rail_run)) if feed != 9 else 50  # feed 9: long blocks (the per-block rule)
+            bounds.append((i, min(N, i + L)))
+            i += L
+        if bounds[-1][1] - bounds[-1][0] < 2:
+            bounds[-2] = (bounds[-2][0], N)
+            bounds.pop()
+        B = block_stats(t, w, a, np.zeros(0), np.zeros((0, 3)), bounds, None, np.zeros(3), False)
+        pre = fast.prepass(B, w, a, rail_min, rail_run)
+        for b, (i, j) in enumerate(bounds):
+            clip, ev = ref.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b], rail_min, rail_run,
+                                 (B.w_runs[b], B.a_runs[b]))
+            if pre is None:
+                clip_f, ev_f = fast.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b], rail_min, rail_run,
+                                          (B.w_runs[b], B.a_runs[b]))
+            else:
+                clip_f, ev_f = {"mag": False, "gyro": pre[0][b], "accel": pre[1][b]}, pre[2].get(b, [])
+            assert clip_f == clip and ev_f == ev, (feed, b)
+            n_events += len(ev)
+        assert (pre is None) == (feed == 9)
+        assert fast.rail == ref.rail and fast.run == ref.run and fast.clip_on == ref.clip_on, feed
+        t0 = float(t[-1])
+    assert n_events >= 6 and set(ref.rail) == {"gyro", "accel"}, (n_events, ref.rail)
+
+
+def test_the_motion_blocks_constants_follow_the_layout_and_the_noise_model() -> None:
+    """fastpath._block_consts (λ + n, the Cholesky order, the random walk and Q's constants, the gates: kept on
+    the calibrator) against the values computed afresh, after each thing it depends on changed: a hold
+    offset appended (a new layout of 43 states), the gates, the sigma-point spread, rw_factor."""
+    from onlinecal.ukf.kernels_unscented import _identity
+
+    cal = OnlineCalibrator(None)
+
+    def fresh():
+        c, lay = cal.config, cal.lay
+        lam = c.sp_alpha**2 * (lay.n + c.sp_kappa) - lay.n
+        order = _identity(lay.n) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
+        rw, q_args = fastpath._q_args(cal)
+        return lam + lay.n, order, rw.copy(), q_args, [cal._gates["accel"], cal._gates["mag"]]
+
+    def check():
+        got, ref = fastpath._block_consts(cal), fresh()
+        assert got[0] == ref[0] and np.array_equal(got[1], ref[1]) and np.array_equal(got[2], ref[2])
+        assert got[3] == ref[3] and got[4].tolist() == ref[4] and got[2].shape == (cal.n,)
+
+    check()
+    first = fastpath._block_consts(cal)
+    assert fastpath._block_consts(cal) is first  # kept while nothing changed
+    cal._add_hold("mag", 0.01)
+    check()
+    cal._gates = {"accel": 5.0, "mag": 9.0}
+    check()
+    cal.config.sp_alpha = 0.5
+    check()
+    cal.config.rw_factor = 2e-3
+    check()
+    assert fastpath._block_consts(cal)[2][5] == pytest.approx(first[2][5] * 4)  # a bias entry: (2 × rw)²

@@ -148,6 +148,21 @@ class Blocks:
     m_frac: Array
     w_runs: Index  # (n_b, 2, 3) the first and last runs of identical readings (.detectors.block_runs)
     a_runs: Index
+    # the per-block scalars as Python ints and floats, converted once per feed (issue 15: each numpy scalar
+    # read in the per-block Python, int(B.lo[b]) and the like, cost ~0.1 µs; a block made some twenty)
+    lo_l: list[int] = field(init=False)
+    hi_l: list[int] = field(init=False)
+    mlo_l: list[int] = field(init=False)
+    mhi_l: list[int] = field(init=False)
+    jerk_l: list[float] = field(init=False)
+    jerk_n_l: list[float] = field(init=False)
+    var3_l: dict[str, list[float]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.lo_l, self.hi_l = self.lo.tolist(), self.hi.tolist()
+        self.mlo_l, self.mhi_l = self.mlo.tolist(), self.mhi.tolist()
+        self.jerk_l, self.jerk_n_l = self.jerk.tolist(), np.asarray(self.jerk_n, dtype=float).tolist()
+        self.var3_l = {s: v.tolist() for s, v in self.var3.items()}
 
 
 

@@ -186,6 +186,42 @@ class RailDetector:
         return out, events
 
 
+    def prepass(self, B: Blocks, w: Array, a: Array, rail_min: dict[str, float], rail_run: int
+                ) -> tuple[list[bool], list[bool], dict[int, list[tuple[str, str]]]] | None:
+        """:meth:`check` for every block of ``B`` at once (the buffers w, a (N, 3) raw), in one compiled call per
+        sensor (:func:`.kernels_detectors.rail_pass_kernel`; issue 15), where every block is a usual one
+        (1 < L < ``rail_run``; else None and nothing is changed: the caller checks block by block). Returns the
+        gyro's and the accel's clip flag per block and the events per block index; the detector's state is
+        that after the last block (the blocks are then filtered in order, each taking its row)."""
+        L = B.hi - B.lo
+        if not L.size or not bool(((L > 1) & (L < rail_run)).all()):
+            return None
+        from .kernels_detectors import rail_pass_kernel
+
+        hits: list[list[bool]] = []
+        events: dict[int, list[tuple[str, str]]] = {}
+        for s, v, amax, rr in (("gyro", w, B.w_absmax, B.w_runs), ("accel", a, B.a_absmax, B.a_runs)):
+            learnt = s in self.rail
+            rail = np.array(self.rail[s] if learnt else [math.inf] * 3, dtype=float)
+            carry = self.run.get(s)
+            cv = np.array([c[0] for c in carry] if carry is not None else [0.0] * 3, dtype=float)
+            cn = np.array([c[1] for c in carry] if carry is not None else [0] * 3, dtype=np.intp)
+            hit, ev, rail_at, learnt, has_carry, clip_on = rail_pass_kernel(
+                np.ascontiguousarray(amax), np.ascontiguousarray(rr), v[B.lo], v[B.hi - 1], L, rail, learnt, cv, cn,
+                carry is not None, self.clip_on[s], float(rail_min[s]), int(rail_run))
+            if learnt:
+                self.rail[s] = rail.tolist()
+            if has_carry:
+                self.run[s] = list(zip(cv.tolist(), cn.tolist(), strict=True))
+            else:
+                self.run.pop(s, None)
+            self.clip_on[s] = bool(clip_on)
+            hits.append(hit.tolist())
+            for b in np.flatnonzero(ev).tolist():
+                events.setdefault(b, []).append(_saturation_event(s, rail_at[b].tolist()))
+        return hits[0], hits[1], events
+
+
 def _all_below(v: list[float], bound: float) -> bool:
     """float(np.max(v)) < bound for a few Python floats v (False where one is NaN, as np.max's NaN)."""
     return all(x < bound for x in v)
@@ -219,8 +255,8 @@ class RestDetector:
         """Judge block ``b`` of ``B`` with the per-sample noise σ ``n``; True once in a rest. ``n_mean``: the σ
         whose σ²/L is a block mean's variance (:meth:`.noise.NoiseModel.for_means`; correlated samples
         average down less), for the change of the means; ``n`` where not given."""
-        L = int(B.hi[b] - B.lo[b])
-        n_m = int(B.mhi[b] - B.mlo[b])
+        L = B.hi_l[b] - B.lo_l[b]
+        n_m = B.mhi_l[b] - B.mlo_l[b]
         gm, am = B.w_mean[b], B.a_mean[b]
         mm = B.m_mean[b] if n_m else None
         sg, sa = n["gyro"], n["accel"]
@@ -281,7 +317,7 @@ class HoldTracker:
         new = False
         if not sensors:
             return out, resets, new
-        cnt = {"accel": int(B.hi[b] - B.lo[b]), "mag": int(B.mhi[b] - B.mlo[b])}
+        cnt = {"accel": B.hi_l[b] - B.lo_l[b], "mag": B.mhi_l[b] - B.mlo_l[b]}
         for s, mean, std, pi in (("accel", B.a_mean[b], B.a_std[b], 1), ("mag", B.m_mean[b], B.m_std[b], 2)):
             if s not in sensors or cnt[s] < 2:
                 self.held[s] = False

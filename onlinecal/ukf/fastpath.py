@@ -44,7 +44,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..specs import FIELD_GAUSS
 from . import kernels
+from .divergence import NIS_NEGATIVE_TOL, nis_failure
 from .kernels import _njit
 from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_kernel, rot_log_rel_kernel
 from .kernels_unscented import _STATUS, _identity
@@ -53,6 +55,7 @@ from .layout import DIP, SENSOR_SLICE
 from .predict import interp_weights
 from .start import calibrated
 from .unscented import UpdateResult
+from .vehicle import OMEGA_E_HORIZONTAL_RMS
 
 if TYPE_CHECKING:
     from .blocks import Blocks
@@ -97,6 +100,45 @@ def _bilinear_var(P: Array, g0: int) -> Array:
     for i in range(3):
         out[i] = sig[3 + i] * sig[3 + i] * v_o[i] + s_ang**2 * (tot - v_o[i])
     return out
+
+
+@_njit
+def block_q_kernel(rw: Array, dt: float, rate: float, sigma_gyr: float, mag_col: int, mag_dens: float,
+                   field_gauss: float, rw_factor: float, x: Array, P: Array, earth: bool, bias_col: int,
+                   scale_col: int, sigma_rest: float, tau: float, om2: float, two: float) -> Array:
+    """The block's Q diagonal (n,) before the block's own terms: :meth:`.noise.NoiseModel.process_noise` of
+    :meth:`.noise.NoiseModel.cal_rw` and, with ``earth`` (a vehicle), :func:`.step.earth_rate_q` — in one pass,
+    the same operations in the same order as the Python they replace, so the same bits.
+
+    rw (n,) the cached random-walk vector (:meth:`.noise.NoiseModel.cal_rw`, whose mag-bias entries are set
+    here from x: (density · unit/``field_gauss`` · rw_factor)², unit = 1 / mean mag scale; ``mag_col`` the
+    mag bias's first column, −1 without a mag spec); dt s the block; ``rate`` Hz; ``sigma_gyr`` rad/s per
+    sample; P (n, n) the covariance Q adds to; ``bias_col``, ``scale_col`` the gyro's bias and scale columns;
+    ``sigma_rest`` rad/s, ``tau`` s and ``om2`` = Ω_h² (rad/s)² as :func:`.vehicle.earth_rate_noise`;
+    ``two`` = 2.0 at run time (libm's ``pow``, as Python's ``**2``: see :func:`motion_kernel`)."""
+    n = rw.shape[0]
+    q = np.empty(n)
+    for k in range(n):
+        q[k] = rw[k] * dt
+    if mag_col >= 0:
+        s0 = mag_col + 3  # the mag's scale
+        unit = 1.0 / (((x[s0] + x[s0 + 1]) + x[s0 + 2]) / 3.0)  # (.noise.mag_unit_of)
+        v = math.pow(mag_dens * (unit / field_gauss) * rw_factor, two)
+        for k in range(mag_col, mag_col + 3):
+            q[k] = v * dt
+    att = dt * rate * math.pow(sigma_gyr / rate, two)
+    for k in range(3):
+        q[k] = att
+    if earth:
+        s_gyr = ((x[scale_col] + x[scale_col + 1]) + x[scale_col + 2]) / 3.0
+        floor = math.pow(sigma_rest / s_gyr, two)
+        for k in range(bias_col, bias_col + 3):
+            v = floor - P[k, k]
+            q[k] += v if not v <= 0.0 else 0.0
+        a = om2 * tau * dt
+        for k in range(3):
+            q[k] += a
+    return q
 
 
 @_njit
@@ -177,7 +219,9 @@ def _model_pair_shared(p: Array, g1: int, g2: int) -> tuple[Array, Array, Array]
 
 @_njit
 def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
-                   c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
+                   c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, rw: Array, rate: float,
+                   sigma_gyr: float, mag_q: bool, mag_dens: float, field_gauss: float, rw_factor: float,
+                   earth: bool, sigma_rest: float, tau: float, om2: float, two: float,
                    q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float,
                    gravity: float, g0: int, a0: int, m0: int, dip_col: int
                    ) -> tuple[bool, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, float]:
@@ -185,8 +229,11 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
 
     x (n,), P (n, n) the state; scale = λ + n; order the Cholesky's state order; R_nom (3, 3); w (L + 1, 3),
     dt (L,), c_mag (L + 1,) (read when has_mag) as :func:`.kernels_propagate.propagate_kernel`; dyn the
-    dynamic sigma points; Wm, Wc the weights; q (n,) the base process noise (changed in place: + the
-    trapezoid allowance ``q_att_jerk`` and the bilinear term × dt_blk² on the attitude); w_mean (3,) the
+    dynamic sigma points; Wm, Wc the weights; rw … two the base process noise's inputs (:func:`block_q_kernel`:
+    the cached random walk rw (n,), the rate Hz, the gyro's per-sample σ, whether the mag has a spec (its bias
+    columns from m0), its density, the field's gauss, rw_factor, whether the Earth-rate allowance applies (a
+    vehicle) with its σ, τ and Ω_h²), to which the trapezoid allowance ``q_att_jerk`` and the bilinear term ×
+    dt_blk² are added on the attitude; w_mean (3,) the
     block-mean raw rate; a_mean (3,) the block-mean raw accel, σ ``sig_mean``; g0, a0, m0 the sensors'
     first columns; dip_col the dip's.
 
@@ -195,6 +242,8 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
     (2S, 3, 3) of accel then mag (S rows, the accel's, without has_mag), ω of the mean (3,) rad/s, the
     specific force's deviation (m/s², :meth:`.measurements.AccelModel.deviation`)).
     """
+    q = block_q_kernel(rw, dt_blk, rate, sigma_gyr, m0 if mag_q else -1, mag_dens, field_gauss, rw_factor, x, P,
+                       earth, g0, g0 + 3, sigma_rest, tau, om2, two)
     X, ok = sigma_points_kernel(x, P, scale, order)
     S, Sd = X.shape[0], dyn.shape[0]
     if not ok:
@@ -308,8 +357,10 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
 
 @_njit
 def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
-                  c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, q: Array,
-                  q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float, gravity: float,
+                  c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, rw: Array, rate: float,
+                  sigma_gyr: float, mag_q: bool, mag_dens: float, field_gauss: float, rw_factor: float,
+                  earth: bool, sigma_rest: float, tau: float, om2: float, q_att_jerk: float, dt_blk: float,
+                  w_mean: Array, a_mean: Array, sig_mean: float, gravity: float,
                   g0: int, a0: int, m0: int, dip_col: int, dev_bail: float, use_acc: bool, dev_gain: float,
                   lever_m: float, var_v: float, z_mag: Array, var_mag: float, hold_acc: int, hold_mag: int,
                   gates: Array, consider: NDArray[np.bool_], damp: float, yaw_var: float, max_rate: Array,
@@ -326,17 +377,25 @@ def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_n
     about one value in a thousand).
 
     Returns (stage: 0 P not positive definite, 1 stopped after the prediction, 2 done; the prediction
-    (X, x_pred, Y, P_pred, f_body, h_body, sens_o, sens_Minv: None at stage 2), R_end of the mean (3, 3), ω
-    of the mean (3,) (None at stage 2), the deviation; the update (x, P, NIS, status, solved, R, fine: None,
-    True, None, False before stage 2)) — see the two kernels. (None, not placeholder arrays: each array
-    returned costs its boxing, ~0.5 µs.)
+    (X, x_pred, Y, P_pred, f_body, h_body, sens_o, sens_Minv, ω of the mean (3,): None at stage 2); Rs (2, 3, 3):
+    R_end of the mean, and at stage 2 the posterior's R; info (7,): the deviation, and at stage 2 whether the
+    solve succeeded and x, P are fine (1.0 / 0.0), the NIS of the accel-then-mag blocks (2, as many as used)
+    and their status (−1 where absent); the update's x, P (None before stage 2)) — see the two kernels.
+    (None, not placeholder arrays, and the small results in two arrays: each array returned costs its
+    allocation and boxing, ~1.3 µs.)
     """
     ok, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
-        x, P, scale, order, R_nom, w, dt, c_mag, has_mag, dyn, Wm, Wc, q, q_att_jerk, dt_blk, w_mean, a_mean,
-        sig_mean, gravity, g0, a0, m0, dip_col)
+        x, P, scale, order, R_nom, w, dt, c_mag, has_mag, dyn, Wm, Wc, rw, rate, sigma_gyr, mag_q, mag_dens,
+        field_gauss, rw_factor, earth, sigma_rest, tau, om2, two, q_att_jerk, dt_blk, w_mean, a_mean, sig_mean,
+        gravity, g0, a0, m0, dip_col)
+    Rs = np.zeros((2, 3, 3))  # R_end of the mean, then the posterior's (one array: each returned one is boxed)
+    info = np.zeros(7)  # dev, solved, fine, NIS (2), status (2)
+    for i in range(3):
+        for k in range(3):
+            Rs[0, i, k] = R0[i, k]
+    info[0] = dev
     if not ok or dev > dev_bail:
-        return (1 if ok else 0, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev, None, None, None,
-                None, True, None, False)
+        return (1 if ok else 0, X, x_pred, Y, P_pred, f_body, h_body, s_o, s_Mi, om, Rs, info, None, None)
     rate = math.sqrt(np.dot(om, om))  # (BLAS ddot, as np.dot in Python: the same bits)
     for i in range(3):  # MotionCoverage.add_motion: np.maximum (NaN wins), ∫|ω_i| dt
         r = abs(om[i])
@@ -352,7 +411,16 @@ def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_n
     xs, Ps, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, z_mag, has_mag, var_mag, hold_acc,
         hold_mag, gravity, Wm, Wc, gates, consider, damp, R0, yaw_var)
-    return (2, None, None, None, None, R0, None, None, None, None, None, dev, xs, Ps, nis, status, solved, R_new, fine)
+    for i in range(3):
+        for k in range(3):
+            Rs[1, i, k] = R_new[i, k]
+    info[1] = 1.0 if solved else 0.0
+    info[2] = 1.0 if fine else 0.0
+    info[5] = info[6] = -1.0
+    for k in range(nis.shape[0]):
+        info[3 + k] = nis[k]
+        info[5 + k] = status[k]
+    return (2, None, None, None, None, None, None, None, None, None, Rs, info, xs, Ps)
 
 
 @_njit
@@ -425,6 +493,40 @@ def _hold_col(cal: OnlineCalibrator, sensor: str, held: dict[str, bool]) -> int:
     return -1 if sl is None else int(sl.start)
 
 
+def _q_args(cal: OnlineCalibrator) -> tuple[Array, tuple[bool, float, float, float]]:
+    """The cached random-walk vector of :meth:`.noise.NoiseModel.cal_rw` (refreshed where its key changed;
+    :func:`block_q_kernel` sets its mag-bias entries from the state) and (whether the mag has a spec, its
+    density, the field's gauss, rw_factor) — the base Q's inputs; the fast path has no extensions."""
+    nm = cal._noise
+    c = cal.config
+    if nm._rw_key != (cal.lay.n, float(c.rw_factor)) or nm._rw_cache.shape[0] != cal.lay.n:
+        cal._cal_rw()
+    mag = nm.specs.get("mag")
+    return nm._rw_cache, (mag is not None, nm._density(mag) if mag is not None else 0.0, FIELD_GAUSS,
+                          float(c.rw_factor))
+
+
+def _block_consts(cal: OnlineCalibrator) -> tuple[Any, ...]:
+    """What a motion block's call takes that changes only with the layout, the noise model, the gates or the
+    sigma-point settings: (λ + n, the Cholesky's order, :func:`_q_args`, the gates (accel, mag) as an
+    array), kept on the calibrator and rebuilt where any of them changed (issue 15: ~5 µs of Python per
+    block, the specs' hashes of the density's cache among them). Not in a checkpoint: a resumed filter
+    builds it at its first block."""
+    k = cal.__dict__.get("_fast_consts")
+    lay, nm, c, g = cal.lay, cal._noise, cal.config, cal._gates
+    if (k is not None and k[0] is lay and k[1] is nm and k[2] is g and k[3] == (c.sp_alpha, c.sp_kappa, c.rw_factor)
+            and k[4] is nm._rw_cache and nm._rw_key == k[5]):
+        return k[6]
+    nst = lay.n
+    lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
+    order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
+    rw, q_args = _q_args(cal)
+    vals = (lam + nst, order, rw, q_args, np.array([g["accel"], g["mag"]]))
+    cal.__dict__["_fast_consts"] = (lay, nm, g, (c.sp_alpha, c.sp_kappa, c.rw_factor), nm._rw_cache, nm._rw_key,
+                                    vals)
+    return vals
+
+
 def set_merged(on: bool) -> bool:
     """One compiled call per ordinary motion block (:func:`motion_kernel`, the default) or two
     (:func:`predict_kernel`, :func:`update_fold_kernel`: what a block whose prediction raises an event takes);
@@ -436,6 +538,7 @@ def set_merged(on: bool) -> bool:
 
 _merged = True
 _TWO = 2.0  # the squares' exponent, a run-time value in the kernels (see motion_kernel)
+_OM2 = OMEGA_E_HORIZONTAL_RMS**2  # Ω_h² as .vehicle.earth_rate_noise forms it (a Python **2: libm's pow)
 
 
 def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float],
@@ -447,31 +550,29 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     st = _step_module()
     c = cal.config
     tl = float(t[-1])
-    i, j = int(B.lo[b]), int(B.hi[b])
+    scale, order, rw, q_args, gates = _block_consts(cal)
+    i, j = B.lo_l[b], B.hi_l[b]
     L = j - i
     has_mag = bool(use_mag)
     c_mag = _EMPTY1
     if has_mag:
-        k0, n_m0 = int(B.mlo[b]) - int(B.mlo[0]), int(B.mhi[b] - B.mlo[b])
+        k0, n_m0 = B.mlo_l[b] - B.mlo_l[0], B.mhi_l[b] - B.mlo_l[b]
         c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
-    dt_blk = float(t[-1] - cal._t_last)
+    t_last = cal._t_last
+    assert t_last is not None  # (a motion step follows a filtered block)
+    dt_blk = tl - t_last  # (the numpy subtraction's double)
     s_g = n["gyro"]
-    q = st.earth_rate_q(cal, cal._process_noise(dt_blk, s_g), dt_blk)
     jerk = 0.0
     if L >= 2:
-        noise = float(B.jerk_n[b]) * 6.0 * (s_g * dt_blk / L / 4) ** 2
-        jerk = max(0.0, float(B.jerk[b]) - noise) / 3.0
+        noise = B.jerk_n_l[b] * 6.0 * (s_g * dt_blk / L / 4) ** 2
+        jerk = max(0.0, B.jerk_l[b] - noise) / 3.0
     lay = cal.lay
-    nst = lay.n
-    lam = c.sp_alpha**2 * (nst + c.sp_kappa) - nst
-    order = _identity(nst) if lay.perm_id else np.asarray(lay.perm, dtype=np.intp)
     sig_mean = n["accel"] / math.sqrt(t.size)
     a_mean = B.a_mean[b]
     use_acc = not clip["accel"]
-    n_m = int(B.mhi[b] - B.mlo[b])
+    n_m = B.mhi_l[b] - B.mlo_l[b]
     var_mag = n["mag"] ** 2 / max(n_m, 1)
     yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
-    gates = np.array([cal._gates["accel"], cal._gates["mag"]])
     hold_a, hold_m = _hold_col(cal, "accel", held), _hold_col(cal, "mag", held)
     mod = cal._models.acc
     veh = cal._vehicle
@@ -480,17 +581,18 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         var_v = st.vehicle_accel_now(cal, dt_blk)
         feed = c.vehicle == "auto" and not veh.active  # (vehicle_accel_from_dev feeds the detector then)
         cov = cal._coverage
-        (stage, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev, x, P, nis, status, solved,
-         R_new, fine) = motion_kernel(
-            cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
-            lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+        stage, X, x_pred, Y, P_pred, f_body, h_body, s_o, s_Mi, om, Rs, info, x, P = motion_kernel(
+            cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
+            c.vehicle_accel_tau, _OM2, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
             mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates, lay.consider,
             float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
         if stage == 0:
             cal._diverged("covariance is not positive definite", tl)
             return
-        cal.R_nom = R_end0
+        cal.R_nom = Rs[0]
+        dev, solved, fine, nis0, nis1, st0, st1 = info.tolist()
         if stage == 2:
             if feed:  # the detector's run of blocks (dev ≤ dev_bail: it stays off, var_v stands; a var_v that
                 # depended on the prediction would break the one call: tests/test_speed_fastpath.py compares it
@@ -500,12 +602,14 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
                 cov.flight_s += dt_blk
             if use_mag:
                 cov.add_field(calibrated(cal, "mag", B.m_mean[b]))
-            _finish_motion(cal, st, x, P, nis, status, solved, R_new, fine, use_acc, has_mag, var_v, tl)
+            _finish_motion(cal, st, x, P, [nis0, nis1], [st0, st1], solved == 1.0, Rs[1], fine == 1.0, use_acc,
+                           has_mag, var_v, tl)
             return
     else:
         ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
-            cal.x, cal.P, lam + nst, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
-            lay.dyn_pts, cal._Wm, cal._Wc, q, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
+            c.vehicle_accel_tau, _OM2, _TWO, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP)
         if not ok:
             cal._diverged("covariance is not positive definite", tl)
@@ -527,23 +631,38 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     x, P, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
         hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
-    _finish_motion(cal, st, x, P, nis, status, solved, R_new, fine, use_acc, has_mag, var_v, tl)
+    _finish_motion(cal, st, x, P, nis.tolist(), status.tolist(), solved, R_new, fine, use_acc, has_mag, var_v, tl)
 
 
-def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, nis: Array, status: NDArray[np.int64],
+def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: list[float], codes: list[Any],
                    solved: bool, R_new: Array, fine: bool, use_acc: bool, has_mag: bool, var_v: float,
                    tl: float) -> None:
-    """The end of a motion block after its update: the NIS bookkeeping (windows, divergence) and the commit."""
+    """The end of a motion block after its update: the NIS bookkeeping (windows, divergence) and the commit.
+    ``vals``, ``codes``: the NIS and status (0 ok, 1 soft, 2 dropped, −1 none) of the accel-then-mag blocks
+    used, as Python numbers."""
     if not solved:
         raise np.linalg.LinAlgError("Singular matrix")
     k_div = cal._div.count
     k_v = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
-    res = UpdateResult(x, P)
-    names = (["accel"] if use_acc else []) + (["mag"] if has_mag else [])
-    for k, s in enumerate(names):
-        if status[k] >= 0:
-            res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
-    st.gated_bookkeeping(cal, res, tl, True, k_v)
+    # .step.gated_bookkeeping's loop on the kernel's values as Python numbers, without the
+    # UpdateResult it reads them from (issue 15): the same records in the same order
+    k = 0
+    for s, on in (("accel", use_acc), ("mag", has_mag)):
+        if not on:
+            continue
+        code, v = codes[k], vals[k]
+        k += 1
+        if code < 0:
+            continue
+        if not (v >= NIS_NEGATIVE_TOL and v != math.inf):  # divergence.nis_failure (NaN fails the first)
+            cal._diverged(f"{s}: {nis_failure(v)}", tl)
+            break
+        if code == 2:  # dropped: counted, out of the windows
+            cal._nis.reject(s, k_v)
+            continue
+        cal._nis_record(s, v, tl, k_v)
+        if code == 1:  # soft-gated
+            cal._nis.reject(s, k_v)
     if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands
         st.commit_folded(cal, R_new, x, P, fine, tl)
 

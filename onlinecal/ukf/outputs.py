@@ -5,6 +5,7 @@ and the trace rows. Pure functions of the state; the filter passes what they rea
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -143,13 +144,21 @@ def missing_motion(obs: dict[str, dict[str, Any]], lay: StateLayout,
     return need
 
 
+@functools.lru_cache(maxsize=16)
+def _trace_columns(names: tuple[str, ...]) -> tuple[NDArray[np.intp], tuple[str, ...]]:
+    """The public states' indices (:meth:`.state.StateLayout.public`) and the trace's column names for them
+    (``name``, ``name.sigma`` in turn), per layout (issue 15: built once, not at every row)."""
+    idx = [i for i, nm in enumerate(names) if i >= 3 and not nm.startswith("hold.")]
+    return np.asarray(idx, dtype=np.intp), tuple(k for i in idx for k in (names[i], names[i] + ".sigma"))
+
+
 def trace_row(t: float, x: Array, sig: Array, lay: StateLayout, nis_last: dict[str, float]) -> dict[str, float]:
     """One trace row: log time t s, every public estimate and its σ (``name.sigma``), the last NIS."""
     row: dict[str, float] = {"t": t}
-    xl, sl = x.tolist(), sig.tolist()  # Python floats at once: float(x[i]) each, a third of the cost (issue 15)
-    for i, nm in lay.public():
-        row[nm] = xl[i]
-        row[nm + ".sigma"] = sl[i]
+    idx, cols = _trace_columns(tuple(lay.names))
+    vals = np.empty(2 * idx.size)  # estimate and σ in turn, as Python floats at once (issue 15: ~half the cost)
+    vals[0::2], vals[1::2] = x[idx], sig[idx]
+    row.update(zip(cols, vals.tolist(), strict=True))
     for s, v in nis_last.items():
         row[f"nis.{s}"] = v
     return row

@@ -46,7 +46,7 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     T (°C) (the gyro enters through ``B``) and mag samples [mlo, mhi) of tm, m: a rest step inside a
     rest, else predict + update."""
     c = cal.config
-    i, j, ml, mh = int(B.lo[b]), int(B.hi[b]), int(B.mlo[b]), int(B.mhi[b])
+    i, j, ml, mh = B.lo_l[b], B.hi_l[b], B.mlo_l[b], B.mhi_l[b]
     t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
     tl = float(t[-1])
     use_mag, mag_changed = mag_block(cal, tm_all[ml:mh], m_all[ml:mh], tl)
@@ -57,7 +57,7 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
                              accel_is_gravity=not cal._vehicle.active)
     spec = cal._spec_noise()
     q = cal._lat.q or {}
-    for kind, detail in cal._noise.monitor_all({s: float(B.var3[s][b]) for s in SENSORS}, spec, q,
+    for kind, detail in cal._noise.monitor_all({s: B.var3_l[s][b] for s in SENSORS}, spec, q,
                                                c.noise_tau_blocks, c.noise_high, c.noise_low):
         cal._event(kind, detail, tl)
     n = cal._noise.noise(spec, q)
@@ -98,7 +98,7 @@ def block_mean_noise(cal: OnlineCalibrator, B: Blocks, b: int, prev: tuple[Any, 
     difference, per sensor, to the block-mean noise factor (:meth:`.noise.NoiseModel.rest_pair`) against
     the per-sample σ ``n`` the filter uses; both blocks taken at this block's sample count (1/L₁ + 1/L₂ =
     2/L), as the rest detector's bound on the change of the means takes them."""
-    L, n_m = int(B.hi[b] - B.lo[b]), int(B.mhi[b] - B.mlo[b])
+    L, n_m = B.hi_l[b] - B.lo_l[b], B.mhi_l[b] - B.mlo_l[b]
     pairs = [("gyro", B.w_mean[b], prev[0], L), ("accel", B.a_mean[b], prev[1], L)]
     if n_m and prev[2] is not None:
         pairs.append(("mag", B.m_mean[b], prev[2], n_m))
@@ -131,7 +131,7 @@ def vehicle_rest_noise(cal: OnlineCalibrator, B: Blocks, b: int, n: dict[str, fl
     judges against: on a vehicle the spec's, not the vibration-raised level (a vibrating vehicle is
     not at rest, and its accelerometer then measures thrust, not gravity)."""
     if cal.config.vehicle == "auto":
-        vehicle_event(cal, cal._vehicle.update(math.sqrt(max(0.0, float(B.var3["accel"][b]))), None, tl), tl)
+        vehicle_event(cal, cal._vehicle.update(math.sqrt(max(0.0, B.var3_l["accel"][b])), None, tl), tl)
     return rest_noise(n, cal._vehicle, cal._noise.high["accel"], cal._noise.ratio["accel"])
 
 

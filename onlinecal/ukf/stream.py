@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from . import fastpath
 from .blocks import Blocks, block_stats, cut_blocks
 from .config import MIN_SAMPLES_DETECT
 from .start import init_attitude
@@ -51,15 +52,22 @@ def process(cal: OnlineCalibrator, final: bool = False) -> None:
     continues = (cal._att_ok and cal._t_last is not None
                  and buf.t[0] - cal._t_last <= cal.config.max_gap_s)
     B = block_stats(buf.t, buf.w, buf.a, buf.tm, buf.m, bounds, cal._t_last, cal._w_last, bool(continues))
+    # the rail detector depends on the raw data alone: on the fast path, every block of the feed in one compiled
+    # pass (None: a block it does not cover, or the reference path: block by block in filter_block)
+    rails = (cal._rails.prepass(B, buf.w, buf.a, cal.config.rail_min, cal.config.rail_run) if fastpath.enabled()
+             else None)
     for b in range(len(bounds)):
-        filter_block(cal, B, b, buf.t, buf.w, buf.a, buf.T, buf.tm, buf.m)
+        filter_block(cal, B, b, buf.t, buf.w, buf.a, buf.T, buf.tm, buf.m, rails)
     buf.drop(bounds[-1][1], int(B.mhi[-1]))
 
 
 def filter_block(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, w: Array, a: Array, T: Array, tm: Array,
-                 mm: Array) -> None:
-    """One filter block: gap check, lattice of a late mag, rail, then attitude start or filter step."""
-    i, j, ml, mh = int(B.lo[b]), int(B.hi[b]), int(B.mlo[b]), int(B.mhi[b])
+                 mm: Array, rails: tuple[list[bool], list[bool], dict[int, list[tuple[str, str]]]] | None = None
+                 ) -> None:
+    """One filter block: gap check, lattice of a late mag, rail, then attitude start or filter step. ``rails``:
+    the rail detector's flags and events of every block of ``B`` (:meth:`.detectors.RailDetector.prepass`),
+    or None to run it on this block."""
+    i, j, ml, mh = B.lo_l[b], B.hi_l[b], B.mlo_l[b], B.mhi_l[b]
     tb = t[i:j]
     t0 = cal._t_last if cal._att_ok and cal._t_last is not None else None
     if cal._t_last is not None and tb[0] - cal._t_last > cal.config.max_gap_s:
@@ -69,8 +77,11 @@ def filter_block(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, w: Array, a
     if cal._lat.late_mag(mb):
         cal._apply_lattice(("mag",))
         cal._lat.settle()
-    clip, events = cal._rails.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b],
-                                    cal.config.rail_min, cal.config.rail_run, (B.w_runs[b], B.a_runs[b]))
+    if rails is None:
+        clip, events = cal._rails.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b],
+                                        cal.config.rail_min, cal.config.rail_run, (B.w_runs[b], B.a_runs[b]))
+    else:
+        clip, events = {"mag": False, "gyro": rails[0][b], "accel": rails[1][b]}, rails[2].get(b, [])
     for kind, detail in events:
         cal._event(kind, detail, float(tb[-1]))
     if clip["gyro"]:

@@ -1,0 +1,101 @@
+"""Bit-identity check of the online filter across code changes (issue 15's rounds: a speed change must keep the
+filter's arithmetic). Replays five logs and saves, or compares with a saved run, the final state x, covariance P,
+attitude R_nom, the events with their details, the NIS bookkeeping, the motion coverage and every trace row —
+``np.array_equal``, NaN-aware, not a tolerance.
+
+The logs: a cold 120-s flight whose vehicle detector switches on, the 10-min benchmark flight
+(``bench_ukf.py``'s), a cold 200-s paper session (the magnetometer's cold start, hold offsets), a 90-s multirotor
+flight and an 80-s paper session with a magnetic disturbance started from the truth.
+
+    PYTHONPATH=. python benchmarks/bits_ukf.py save /tmp/before.pkl   # on the commit before
+    PYTHONPATH=. python benchmarks/bits_ukf.py cmp /tmp/before.pkl    # on the change: exit 1 if any differs
+
+``--backend numpy`` checks the reference path; ``ONLINECAL_FASTPATH=0`` in the environment the general numba path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pickle
+import sys
+import warnings
+from typing import Any
+
+for _v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import numpy as np  # noqa: E402
+
+from onlinecal.sim import simulate  # noqa: E402
+from onlinecal.sim.effects import MagDisturbance  # noqa: E402
+from onlinecal.ukf import OnlineCalibrator, kernels  # noqa: E402
+
+
+def logs() -> Any:
+    """(name, data, init) of the five logs."""
+    yield "flight120", simulate("flight", 3, duration=120, imu_rate=200).data, None
+    yield "flight600", simulate("flight", 0, duration=600, imu_rate=200).data, None
+    yield "paper200", simulate("paper", 1, duration=200).data, None
+    yield "multirotor90", simulate("multirotor", 2, duration=90, imu_rate=200).data, None
+    eff = MagDisturbance(start=55.0, duration=6.0, amplitude=0.5, direction=(1.0, 0.5, 0.0))
+    sim = simulate("paper", 1, duration=80.0, effects=[eff])
+    yield "paperdist", sim.data, sim.truth.calibration
+
+
+def snapshot(cal: OnlineCalibrator) -> dict[str, Any]:
+    cov = cal._coverage
+    return {"x": cal.x.copy(), "P": cal.P.copy(), "R": cal.R_nom.copy(),
+            "events": [(e["kind"], e["t"], e["detail"]) for e in cal.events], "nis": repr(cal._nis.stats),
+            "coverage": (cov.max_rate.copy(), cov.angle.copy(), cov.flight_s), "blocks": cal._n_blocks,
+            "trace": [list(r.items()) for r in cal.trace_rows()]}
+
+
+def same(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Every field equal to the last bit (NaN equal to NaN in the trace)."""
+    if not (np.array_equal(a["x"], b["x"]) and np.array_equal(a["P"], b["P"]) and np.array_equal(a["R"], b["R"])
+            and a["events"] == b["events"] and a["nis"] == b["nis"] and a["blocks"] == b["blocks"]
+            and all(np.array_equal(u, v) for u, v in zip(a["coverage"], b["coverage"], strict=True))
+            and len(a["trace"]) == len(b["trace"])):
+        return False
+    for ra, rb in zip(a["trace"], b["trace"], strict=True):
+        if [k for k, _ in ra] != [k for k, _ in rb]:
+            return False
+        if not np.array_equal([v for _, v in ra], [v for _, v in rb], equal_nan=True):
+            return False
+    return True
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("mode", choices=["save", "cmp"])
+    ap.add_argument("path")
+    ap.add_argument("--backend", default="numba", choices=["numba", "numpy"])
+    args = ap.parse_args()
+    out = {}
+    with kernels.use_backend(args.backend), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the disturbance's and the cold start's warnings: the events say it
+        for name, d, init in logs():
+            cal = OnlineCalibrator(init)
+            cal.feed(d)
+            cal.flush()
+            out[name] = snapshot(cal)
+            print(f"{name}: {cal._n_blocks} blocks, events {sorted({e[0] for e in out[name]['events']})}")
+    if args.mode == "save":
+        with open(args.path, "wb") as f:
+            pickle.dump(out, f)
+        print(f"saved {args.path}")
+        return
+    with open(args.path, "rb") as f:
+        ref = pickle.load(f)  # noqa: S301 (a file this script wrote)
+    ok = True
+    for name, snap in out.items():
+        eq = same(snap, ref[name])
+        ok &= eq
+        print(f"{name}: {'bit-identical' if eq else 'DIFFERS'} ({len(snap['trace'])} trace rows)")
+    print("all bit-identical" if ok else "some differ")
+    sys.exit(0 if ok else 1)
+
+
+if __name__ == "__main__":
+    main()

@@ -451,3 +451,19 @@ def test_the_motion_blocks_constants_follow_the_layout_and_the_noise_model() -> 
     cal.config.rw_factor = 2e-3
     check()
     assert fastpath._block_consts(cal)[2][5] == pytest.approx(first[2][5] * 4)  # a bias entry: (2 × rw)²
+
+
+def test_a_warm_up_s_bias_walk_reaches_the_fast_motion_step() -> None:
+    """A warm-up drift of the gyro bias (the simulator's thermal temperature_bias) switches the measured bias
+    walk on in the first rest (event bias_walk); the motion blocks after it take the walk from the random-walk
+    vector the fast path keeps between blocks (updated in place, NoiseModel.apply_walk): the fast path and the
+    numpy reference end alike, and the walk is in both."""
+    from onlinecal.sim.effects import TemperatureBias
+
+    sim = simulate("paper", 43, duration=90.0, effects=[TemperatureBias(sensor="gyro", axis="y", coeff=8e-4)])
+    fast, n_fast = _run(sim.data, "numba", True)
+    ref, _ = _run(sim.data, "numpy", False)
+    assert n_fast["motion"] > 100
+    assert any(e["kind"] == "bias_walk" for e in ref.events), ref.events
+    assert fast._noise.q_walk > 0.0 and fast._noise.q_walk == pytest.approx(ref._noise.q_walk, rel=1e-9)
+    _assert_same(fast, ref)

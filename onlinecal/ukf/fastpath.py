@@ -514,6 +514,8 @@ def _block_consts(cal: OnlineCalibrator) -> tuple[Any, ...]:
     builds it at its first block."""
     k = cal.__dict__.get("_fast_consts")
     lay, nm, c, g = cal.lay, cal._noise, cal.config, cal._gates
+    if nm.q_walk > 0.0 or nm._walk_set:  # the gyro bias's walk measured at rest, in the cached vector in place
+        nm.apply_walk(float(c.rw_factor))
     if (k is not None and k[0] is lay and k[1] is nm and k[2] is g and k[3] == (c.sp_alpha, c.sp_kappa, c.rw_factor)
             and k[4] is nm._rw_cache and nm._rw_key == k[5]):
         return k[6]

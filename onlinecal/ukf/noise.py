@@ -278,16 +278,22 @@ class NoiseModel:
             self._rw_key, self._rw_cache = key, q
         q = self._rw_cache
         if self.q_walk > 0.0 or self._walk_set:
-            # the gyro bias's random walk measured at rest (:meth:`walk_from_rest`), never below the spec's
-            gb = SENSOR_SLICE["gyro"].start
-            q_spec = (self._density(self.specs["gyro"]) * rw_factor) ** 2
-            q[gb : gb + 3] = max(q_spec, self.q_walk)
-            self._walk_set = self.q_walk > 0.0
+            self.apply_walk(rw_factor)
         if "mag" in self.specs:
             unit = mag_unit_of(x) / FIELD_GAUSS
             sm = SENSOR_SLICE["mag"].start
             q[sm : sm + 3] = (self._density(self.specs["mag"]) * unit * rw_factor) ** 2
         return q
+
+    def apply_walk(self, rw_factor: float) -> None:
+        """Set the gyro bias's entries of the cached random-walk vector (:meth:`cal_rw`) in place: the walk
+        measured at rest (:meth:`walk_from_rest`) where it is above the spec's, the spec's otherwise. The fast
+        path keeps that array between blocks (:func:`.fastpath._block_consts`) and calls this where a walk is
+        or was in use."""
+        gb = SENSOR_SLICE["gyro"].start
+        q_spec = (self._density(self.specs["gyro"]) * rw_factor) ** 2
+        self._rw_cache[gb : gb + 3] = max(q_spec, self.q_walk)
+        self._walk_set = self.q_walk > 0.0
 
     @staticmethod
     def _density(spec: SensorSpec) -> float:

@@ -44,8 +44,9 @@ KAPPA_ON_SIGMA = 3.0  # κ̂ − 1 beyond this many of its σ switches it on; wi
 KAPPA_EVERY_FROM = 100  # from here on κ̂ is taken every 10th pair (a rest-heavy log spent a third of its
 # replay on the median at every pair: the paper session 1.20 → 1.81 s CPU)
 KAPPA_KEEP = 3000  # pairs kept (5 minutes of rest at 0.1-s blocks): the median of the most recent
-WALK_CHI2_3 = 21.108  # χ²(3) at 1 − 1e-4: the test of a rest's gyro trend, re-taken at every rest block
-WALK_MIN_BLOCKS = 20  # blocks of a rest before its trend is tested
+WALK_CHI2_3 = 30.664  # χ²(3) at 1 − 1e-6: the test of a rest's gyro trend, re-taken at every rest block (at
+# 1 − 1e-4 one of 60 white paper sessions switched on, 2.2 s into a rest: a turn's settling read as a drift)
+WALK_MIN_BLOCKS = 50  # blocks of a rest before its trend is tested (5 s: past a turn's settling)
 WALK_CLEAR_S = 30.0  # a rest this long without a trend returns the bias's walk to the spec's
 
 
@@ -225,7 +226,7 @@ class NoiseModel:
 
         At rest the gyro reads its bias (and the Earth's rate, constant at rest): a trend is a bias that
         moves — a freshly powered unit warming up (the real PX4 log's: 5–11 µrad/s per s over its 60-s rest).
-        Tested as χ² = Σ slope²/var_slope against χ²(3) at 1 − 10⁻⁴ (:data:`WALK_CHI2_3`; re-taken at every block of
+        Tested as χ² = Σ slope²/var_slope against χ²(3) at 1 − 10⁻⁶ (:data:`WALK_CHI2_3`; re-taken at every block of
         a rest, so a strict level), from the rest's :data:`WALK_MIN_BLOCKS`-th block, once the noise of a block mean
         is decided (:data:`KAPPA_MIN_PAIRS` pairs at rest in the log). Where it passes, the walk is the drift's
         excess power per axis times the rest's length, q² = T · Σ(slope² − var_slope)/3 (rad²/s³): the random walk

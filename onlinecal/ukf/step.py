@@ -74,6 +74,7 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     skip = False
     acc = cal._rest_acc
     if (not zero_rate and acc is not None and was_still and not acc.skipped and prev is not None
+            and not (cal._hold_new or held != acc.held or mag_changed or use_mag != acc.use_mag)
             and det.marginal(B, b, n_rest, n_det, c.rest_k, prev)):
         # one block a little beyond the noise inside a rest: left out, the rest goes on (RestDetector.marginal);
         # the detector judges the next block against the block before this one
@@ -232,8 +233,9 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
     """A block inside a rest (:mod:`.rest`): the attitude is held (no gyro integration: the gyro's
     reading at rest is its bias, measured by the zero-rate update) and the rest's running means are
     one measurement on the state the rest began with. Ended by :meth:`_end_rest`. ``skip``: a lone block a
-    little beyond the noise (:meth:`.detectors.RestDetector.marginal`), left out of the means: only its
-    time passes (the process noise of its duration)."""
+    little beyond the noise (:meth:`.detectors.RestDetector.marginal`), left out of the means and the NIS:
+    the rest's measurement is applied again with its process noise one block longer, as for any rest block
+    (whose gyro passed the same still test: the attitude is held)."""
     tl = float(t[-1])
     if not (np.isfinite(cal.P).all() and (cal.P.diagonal() > 0).all()):
         # the running rest restarts from its first state, which would hide a broken covariance
@@ -248,24 +250,22 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
     acc.q += cal._process_noise(dt_blk, n["gyro"])
     acc.dur += dt_blk
     acc.skipped = skip
-    if skip:
-        commit(cal, cal.x, cal.P, tl)
-        return
     k = cal._div.count
-    for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
-        cal._nis_record(s, nis, tl)
-    if cal._div.count != k:
-        return  # a divergence: the restarted state stands (not the rest's first state)
-    acc.add(B, b, n, not clip["accel"], use_mag, temp_reg(cal, T) if has_temp(cal) else None)
-    # with a temperature state the model has a term for a warm-up drift
-    if cal.config.measure_bias_walk and "temperature_bias:gyro" not in cal.lay.ext_slice:
-        slope, var_slope = acc.trend()
-        ev = cal._noise.walk_from_rest(slope, var_slope, acc.dur, acc.kw)
-        if ev is not None:
-            cal._event(ev[0], ev[1], tl)
-        acc.walk = cal._noise.q_walk
-    if acc.na:
-        cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
+    if not skip:  # a skipped block adds its time (its process noise) and nothing else: no NIS, no means
+        for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
+            cal._nis_record(s, nis, tl)
+        if cal._div.count != k:
+            return  # a divergence: the restarted state stands (not the rest's first state)
+        acc.add(B, b, n, not clip["accel"], use_mag, temp_reg(cal, T) if has_temp(cal) else None)
+        # with a temperature state the model has a term for a warm-up drift
+        if cal.config.measure_bias_walk and "temperature_bias:gyro" not in cal.lay.ext_slice:
+            slope, var_slope = acc.trend()
+            ev = cal._noise.walk_from_rest(slope, var_slope, acc.dur, acc.kw)
+            if ev is not None:
+                cal._event(ev[0], ev[1], tl)
+            acc.walk = cal._noise.q_walk
+        if acc.na:
+            cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
     x0, P0 = acc.x, acc.P + np.diag(acc.q)
     cal.x, cal.P, cal.R_nom = x0.copy(), P0, acc.R_nom
     if fastpath.rest_applies(cal):  # the rest's update in one compiled call (.fastpath)

@@ -232,6 +232,30 @@ def _all_diff_below(u: list[float], v: list[float], bound: float) -> bool:
     return all(abs(x - y) < bound for x, y in zip(u, v, strict=True))
 
 
+def _still(B: Blocks, b: int, n: dict[str, float], nm: dict[str, float], k: float, prev: tuple[Any, ...] | None,
+           f: float = 1.0) -> bool:
+    """The rest detector's still test of block ``b`` (:class:`RestDetector`): per-axis spread below k σ (``n``),
+    and, against the previous block's means ``prev`` (none: the spread alone), the change of the means below
+    2k σ √(2/L) (``nm``, the σ of a block mean); the accel's and mag's bounds × ``f`` (:meth:`RestDetector.
+    marginal`; 1 for the test itself — the same products, so the same decisions). On Python floats (issue 15):
+    "max over the axes < bound" as "every axis < bound" (a NaN fails both), the differences the same
+    subtractions: the same decisions at a third of numpy's per-call cost."""
+    L = B.hi_l[b] - B.lo_l[b]
+    if not (L >= 3 and _all_below(B.w_std[b].tolist(), k * n["gyro"])
+            and _all_below(B.a_std[b].tolist(), f * k * n["accel"])):
+        return False
+    if prev is None:
+        return True
+    d = math.sqrt(2.0 / L)
+    if not (_all_diff_below(B.w_mean[b].tolist(), prev[0].tolist(), 2 * k * nm["gyro"] * d)
+            and _all_diff_below(B.a_mean[b].tolist(), prev[1].tolist(), f * 2 * k * nm["accel"] * d)):
+        return False
+    n_m = B.mhi_l[b] - B.mlo_l[b]
+    if n_m and prev[2] is not None:
+        return _all_diff_below(B.m_mean[b].tolist(), prev[2].tolist(), f * 2 * k * nm["mag"] * math.sqrt(2.0 / n_m))
+    return True
+
+
 @dataclass
 class RestDetector:
     """Rest from raw data: gyro, accel and mag still (within their noise) for ``rest_blocks`` blocks.
@@ -255,22 +279,11 @@ class RestDetector:
         """Judge block ``b`` of ``B`` with the per-sample noise σ ``n``; True once in a rest. ``n_mean``: the σ
         whose σ²/L is a block mean's variance (:meth:`.noise.NoiseModel.for_means`; correlated samples
         average down less), for the change of the means; ``n`` where not given."""
-        L = B.hi_l[b] - B.lo_l[b]
         n_m = B.mhi_l[b] - B.mlo_l[b]
         gm, am = B.w_mean[b], B.a_mean[b]
         mm = B.m_mean[b] if n_m else None
-        sg, sa = n["gyro"], n["accel"]
-        nm = n if n_mean is None else n_mean
-        # on Python floats (issue 15): "max over the axes < bound" as "every axis < bound" (a NaN fails both),
-        # the differences the same subtractions: the same decisions at a third of numpy's per-call cost
-        still = L >= 3 and _all_below(B.w_std[b].tolist(), k * sg) and _all_below(B.a_std[b].tolist(), k * sa)
         prev = self.prev_means
-        if prev is not None and still:
-            d = math.sqrt(2.0 / L)
-            still = (_all_diff_below(gm.tolist(), prev[0].tolist(), 2 * k * nm["gyro"] * d)
-                     and _all_diff_below(am.tolist(), prev[1].tolist(), 2 * k * nm["accel"] * d))
-            if still and mm is not None and prev[2] is not None:
-                still = _all_diff_below(mm.tolist(), prev[2].tolist(), 2 * k * nm["mag"] * math.sqrt(2.0 / n_m))
+        still = _still(B, b, n, n if n_mean is None else n_mean, k, prev)
         self.prev_means = (gm, am, mm if mm is not None else (prev[2] if prev is not None else None))
         self.count = self.count + 1 if still else 0
         self.still = still
@@ -285,18 +298,7 @@ class RestDetector:
         tap on the bench, a tail of the noise's distribution. On the real PX4 log, 7 such blocks (accel mean
         changes 4.0–7.3 of the bound's unit, spreads 2.1–2.3) cut its 60-s rest into 12 rests, each a fresh
         measurement of the same pose (docs/flight.md)."""
-        L = int(B.hi[b] - B.lo[b])
-        n_m = int(B.mhi[b] - B.mlo[b])
-        nm = n if n_mean is None else n_mean
-        d = math.sqrt(2.0 / L) if L else 0.0
-        if not (L >= 3 and _all_below(B.w_std[b].tolist(), k * n["gyro"])
-                and _all_diff_below(B.w_mean[b].tolist(), prev[0].tolist(), 2 * k * nm["gyro"] * d)
-                and _all_below(B.a_std[b].tolist(), f * k * n["accel"])
-                and _all_diff_below(B.a_mean[b].tolist(), prev[1].tolist(), f * 2 * k * nm["accel"] * d)):
-            return False
-        if n_m and prev[2] is not None:
-            return _all_diff_below(B.m_mean[b].tolist(), prev[2].tolist(), f * 2 * k * nm["mag"] * math.sqrt(2.0 / n_m))
-        return True
+        return _still(B, b, n, n if n_mean is None else n_mean, k, prev, f)
 
 
 @dataclass

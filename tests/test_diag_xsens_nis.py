@@ -50,11 +50,14 @@ def test_xsens_extension_does_not_worsen_the_nis(data_dir) -> None:
     assert after["nis_mean"] <= before["nis_mean"], (before["nis_mean"], after["nis_mean"])
     # what an extension removes is model error: windows whose NIS is above the band (innovations larger than
     # R says) must not grow. Windows below it (R larger than the innovations) are the noise model's, not the
-    # extension's: since the block-mean noise (issue 10) 23 of 44–45 windows are below (conservative: see
-    # docs/flight.md) and none above; before it 17 → 10 above, when the rests' excess noise still read as model
-    # error (docs/findings.md)
+    # extension's (session 10: 23 of 44–45 below, none above, with the hand's turns read as noise; before the
+    # block-mean noise 17 → 10 above, when the rests' excess noise still read as model error; docs/findings.md)
     assert after["above_band"] <= before["above_band"] + 1e-12, (before["above_band"], after["above_band"])
-    assert before["above_band"] <= 0.15, before  # the baseline is consistent from above: 0 of 44 (17 of 44 before)
+    assert before["above_band"] <= 0.15, before  # the baseline is consistent from above: 3 of 49 (17 of 44 before)
+    # and from below: the noise monitor no longer reads the hand's turns as noise (session 11; docs/flight.md):
+    # NIS 2.32 with 20 of 44 windows below the band before, 2.90 with 11 of 49 now
+    assert 2.6 < before["nis_mean"] < 3.4, before
+    assert before["outside_band"] - before["above_band"] <= 0.3, before
     assert "ukf_guard" not in d.baseline
     assert d.calibration.extensions.get("g_sensitivity") is not None
     top = d.significant[0]

@@ -57,8 +57,9 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
                              accel_is_gravity=not cal._vehicle.active)
     spec = cal._spec_noise()
     q = cal._lat.q or {}
-    for kind, detail in cal._noise.monitor_all({s: B.var3_l[s][b] for s in SENSORS}, spec, q,
-                                               c.noise_tau_blocks, c.noise_high, c.noise_low):
+    turn = turning(cal, B, b)
+    var3 = {s: math.nan if turn else B.var3_l[s][b] for s in SENSORS}  # NaN: the monitor leaves its level
+    for kind, detail in cal._noise.monitor_all(var3, spec, q, c.noise_tau_blocks, c.noise_high, c.noise_low):
         cal._event(kind, detail, tl)
     n = cal._noise.noise(spec, q)
     held, resets, cal._hold_new = cal._holds.flags(B, b, n, q, cal._rest_det.prev_means,
@@ -68,7 +69,7 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     n_mean = cal._noise.for_means(n)
     det = cal._rest_det
     prev, was_still, count = det.prev_means, det.still, det.count
-    n_rest = vehicle_rest_noise(cal, B, b, n, tl)
+    n_rest = vehicle_rest_noise(cal, B, b, n, tl, turn)
     n_det = n_mean if n_rest is n else None
     zero_rate = det.update(B, b, n_rest, c.rest_k, c.rest_blocks, n_det) and det.still
     skip = False
@@ -127,12 +128,44 @@ def has_temp(cal: OnlineCalibrator) -> bool:
     return any(e.startswith("temperature_bias") for e in cal.lay.ext_slice)
 
 
-def vehicle_rest_noise(cal: OnlineCalibrator, B: Blocks, b: int, n: dict[str, float], tl: float) -> dict[str, float]:
-    """Feed the vehicle detector (:mod:`.vehicle`) the block's accel vibration; the noise the rest test
-    judges against: on a vehicle the spec's, not the vibration-raised level (a vibrating vehicle is
-    not at rest, and its accelerometer then measures thrust, not gravity)."""
+def turning(cal: OnlineCalibrator, B: Blocks, b: int) -> bool:
+    """Whether block ``b`` of ``B`` turns too fast for its third differences to measure noise
+    (ω_q = :attr:`.config.UKFConfig.noise_rate_max`, rad/s). Either test:
+
+    * its mean raw rate less the gyro bias is above ω_q by more than 3σ of the bias (so a cold start's wide
+      bias judges only the fast turns);
+    * its rate varies within the block: the spread's Σσ² (rad/s)² above ω_q² + 2 × what the gyro's own
+      measured noise gives (3 × its third-difference variance; twice it, for the spread's scatter over
+      ~20 samples). It needs no bias: a hand's turn onset, whose mean is still small, shows here (Ferraris
+      at 3.6 s: mean 0.38 rad/s, spread 0.58, the bias's σ 0.2 on a cold start); vibration, whose third
+      differences read at least its variance, does not.
+
+    Never on a vehicle detected by its vibration (:attr:`.vehicle.VehicleDetector.vibrating`), which is its
+    accelerometer's noise at any rate; a vehicle detected by a linear acceleration (a hand's push, too) is
+    judged as before."""
+    if cal._vehicle.vibrating:
+        return False
+    wq = cal.config.noise_rate_max
+    s = B.w_std[b]
+    spread = float(s[0]) ** 2 + float(s[1]) ** 2 + float(s[2]) ** 2
+    if spread > wq * wq + 6.0 * B.var3_l["gyro"][b]:  # NaN noise: not decided here
+        return True
+    i = _GYR_BIAS.start
+    x, P, w = cal.x, cal.P, B.w_mean[b]
+    wx, wy, wz = float(w[0]) - float(x[i]), float(w[1]) - float(x[i + 1]), float(w[2]) - float(x[i + 2])
+    sig = math.sqrt(max(0.0, float(P[i, i]) + float(P[i + 1, i + 1]) + float(P[i + 2, i + 2])))
+    return math.sqrt(wx * wx + wy * wy + wz * wz) > wq + 3.0 * sig
+
+
+def vehicle_rest_noise(cal: OnlineCalibrator, B: Blocks, b: int, n: dict[str, float], tl: float,
+                       turn: bool = False) -> dict[str, float]:
+    """Feed the vehicle detector (:mod:`.vehicle`) the block's accel vibration (none in a block that
+    is ``turn``-ing, :func:`turning`); the noise the rest test judges against: on a vehicle the spec's, not
+    the vibration-raised level (a vibrating vehicle is not at rest, and its accelerometer then measures
+    thrust, not gravity)."""
     if cal.config.vehicle == "auto":
-        vehicle_event(cal, cal._vehicle.update(math.sqrt(max(0.0, B.var3_l["accel"][b])), None, tl), tl)
+        vib = math.nan if turn else math.sqrt(max(0.0, B.var3_l["accel"][b]))
+        vehicle_event(cal, cal._vehicle.update(vib, None, tl), tl)
     return rest_noise(n, cal._vehicle, cal._noise.high["accel"], cal._noise.ratio["accel"])
 
 

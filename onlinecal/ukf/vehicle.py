@@ -38,6 +38,7 @@ from .layout import ATT
 Array = NDArray[np.float64]
 AXES = ("x", "y", "z")
 DEG = 180.0 / math.pi
+VIBRATION_REASON = "accelerometer vibration"  # how a reason of :class:`VehicleDetector` switched on by it begins
 
 
 @dataclass
@@ -48,7 +49,9 @@ class VehicleDetector:
     a running motor's vibration, not sensor noise (MEMS accelerometers: 0.01–0.05 m/s² at 100–200 Hz;
     ArduPilot calls < 15 m/s² VIBE healthy, so even a well-mounted vehicle is 10× above this).
     ``dev_min`` m/s²: a specific-force norm departing from g by more than this beyond what the noise and
-    the calibration's σ explain, for ``dev_blocks`` blocks in a row, is a linear acceleration."""
+    the calibration's σ explain, for ``dev_blocks`` blocks in a row, is a linear acceleration.
+    :attr:`vibrating`: switched on by vibration (or configured a vehicle); its accelerometer's high-frequency
+    content is then noise at any rate of turn, and the noise monitor reads every block (:func:`.step.turning`)."""
 
     vibration_sigma: float = 0.3
     dev_min: float = 0.5
@@ -65,7 +68,7 @@ class VehicleDetector:
             return None
         why = None
         if math.isfinite(acc_noise_sigma) and acc_noise_sigma > self.vibration_sigma:
-            why = (f"accelerometer vibration {acc_noise_sigma:.2g} m/s² per sample (> {self.vibration_sigma:g}: "
+            why = (f"{VIBRATION_REASON} {acc_noise_sigma:.2g} m/s² per sample (> {self.vibration_sigma:g}: "
                    "a running motor, not sensor noise)")
         if dev is not None:
             self._dev_run = self._dev_run + 1 if dev > self.dev_min else 0
@@ -75,6 +78,12 @@ class VehicleDetector:
         if why is not None:
             self.active, self.since, self.reason = True, float(t), why
         return why
+
+    @property
+    def vibrating(self) -> bool:
+        """On by vibration, or configured a vehicle (its reason says which: no state of its own, so a checkpoint
+        of any schema knows it)."""
+        return self.active and (self.reason == "configured" or self.reason.startswith(VIBRATION_REASON))
 
     def dev_switch_above(self) -> float:
         """The deviation (m/s²) above which the next :meth:`update` with a deviation and no vibration switches

@@ -32,9 +32,26 @@ def cholesky_kernel(A: Array) -> tuple[Array, bool]:
         ljj = math.sqrt(d)
         L[j, j] = ljj
         inv = 1.0 / ljj
-        # four rows at once (issue 15): four independent subtraction chains, each in its own order (k
-        # ascending, as one row alone), so the same bits; one chain alone waits on each subtraction
+        # eight rows at once (issue 15; four before its eighth round): independent subtraction chains, each in
+        # its own order (k ascending, as one row alone), so the same bits; one chain alone waits on each
+        # subtraction
         i = j + 1
+        while i + 7 < n:
+            a0, a1, a2, a3 = A[i, j], A[i + 1, j], A[i + 2, j], A[i + 3, j]
+            a4, a5, a6, a7 = A[i + 4, j], A[i + 5, j], A[i + 6, j], A[i + 7, j]
+            for k in range(j):
+                ljk = L[j, k]
+                a0 -= L[i, k] * ljk
+                a1 -= L[i + 1, k] * ljk
+                a2 -= L[i + 2, k] * ljk
+                a3 -= L[i + 3, k] * ljk
+                a4 -= L[i + 4, k] * ljk
+                a5 -= L[i + 5, k] * ljk
+                a6 -= L[i + 6, k] * ljk
+                a7 -= L[i + 7, k] * ljk
+            L[i, j], L[i + 1, j], L[i + 2, j], L[i + 3, j] = a0 * inv, a1 * inv, a2 * inv, a3 * inv
+            L[i + 4, j], L[i + 5, j], L[i + 6, j], L[i + 7, j] = a4 * inv, a5 * inv, a6 * inv, a7 * inv
+            i += 8
         while i + 3 < n:
             a0, a1, a2, a3 = A[i, j], A[i + 1, j], A[i + 2, j], A[i + 3, j]
             for k in range(j):

@@ -244,7 +244,7 @@ _PARTS = [
     ("onlinecal.ukf.step", "sigma_points_of", "  sigma points (general path; motion and rest)"),
     ("onlinecal.ukf.step", "propagate_sigma_points", "  propagation + sensor models (general path)"),
     ("onlinecal.ukf.step", "block_process_noise", "  block process noise (general path)"),
-    ("onlinecal.ukf.step", "predict_moments", "  unscented moments (general path)"),
+    ("onlinecal.ukf.step", "predict_moments_motion", "  unscented moments (general path)"),
     ("onlinecal.ukf.step", "vehicle_accel", "  vehicle detector (general path)"),
     ("onlinecal.ukf.step", "motion_measurements", "  measurements (general path)"),
     ("onlinecal.ukf.step", "gated_update", "  update + NIS bookkeeping (general path; motion and rest)"),

@@ -230,6 +230,43 @@ def test_the_sample_major_propagation_equals_the_point_major_loop(has_mag: bool,
         assert np.array_equal(r, v)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_motion_blocks_moments_equal_the_full_unscented_transform(seed: int) -> None:
+    """unscented_motion_kernel (P_pred formed only in the attitude's rows and columns, P + diag(q) elsewhere)
+    against unscented_kernel's full product on sigma points drawn from (x, P) whose attitude columns alone were
+    then moved, as a motion block's propagation moves them: x_pred and Y the same bits, P_pred within 1e-13 of
+    σ_i σ_j, exactly symmetric; P of covariances over 14 decades, the scaled spread of the filter (α = 0.3)."""
+    from onlinecal.ukf.kernels_update import sigma_points_kernel, unscented_kernel, unscented_motion_kernel
+
+    rng = np.random.default_rng(40 + seed)
+    n = 40
+    sd = 10 ** rng.uniform(-7, 0, n)
+    A = rng.normal(size=(n, n)) * 0.3 + np.eye(n) * 2.0
+    C = A @ A.T
+    dC = np.sqrt(np.diag(C))
+    P = C / np.outer(dC, dC) * np.outer(sd, sd)
+    x = rng.normal(size=n) * sd
+    x[:3] = 0.0
+    lam = 0.3**2 * n - n
+    Wm = np.full(2 * n + 1, 1.0 / (2 * (n + lam)))
+    Wc = Wm.copy()
+    Wm[0] = lam / (n + lam)
+    Wc[0] = Wm[0] + (1 - 0.3**2 + 2.0)
+    X, ok = sigma_points_kernel(x, P, lam + n, np.arange(n, dtype=np.intp))
+    assert ok
+    dyn = np.arange(31)
+    X[dyn, :3] = rng.normal(size=(31, 3)) * 1e-3  # the propagated points' attitude errors
+    X[0, :3] = 0.0
+    q = 10 ** rng.uniform(-12, -6, n)
+    xr, Yr, Pr = unscented_kernel(X, Wm, Wc, q)
+    xf, Yf, Pf = unscented_motion_kernel(X, Wm, Wc, q, P)
+    assert np.array_equal(xr, xf) and np.array_equal(Yr, Yf)
+    s = np.sqrt(np.diag(Pr))
+    rel = np.abs(Pf - Pr) / np.outer(s, s)
+    assert rel.max() < 1e-13, rel.max()
+    assert np.array_equal(Pf, Pf.T)
+
+
 def test_the_compiled_third_difference_median_equals_the_numpy_one() -> None:
     """third_diff_var on the numba backend (each segment's windows sorted on their own) against the numpy
     reference (one sort of the whole feed by segment and value): the same bits, on blocks with dropped

@@ -326,7 +326,7 @@ def _cholesky_row_by_row(A: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 def test_cholesky_four_rows_at_once_is_bit_identical_to_row_by_row() -> None:
-    """cholesky_kernel, four rows of a column at a time, against the row-by-row loop: the same factor bit for
+    """cholesky_kernel, eight rows of a column at a time, against the row-by-row loop: the same factor bit for
     bit on SPD matrices of 1–41 rows with scales over 8 decades, and the same refusal of an indefinite one."""
     from onlinecal.ukf.kernels_update import cholesky_kernel
 

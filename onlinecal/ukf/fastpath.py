@@ -13,7 +13,8 @@ one call of :func:`motion_kernel`, which runs
    (:func:`.kernels_propagate.propagate_kernel`), the attitude errors
    (:func:`.kernels_propagate.rot_log_rel_kernel`), the block's process noise
    (:func:`.predict.block_process_noise` with :func:`.noise.bilinear_var`), the unscented moments
-   (:func:`.kernels_update.unscented_kernel`), the mean's turn rate and the quasi-static deviation of the
+   (:func:`.kernels_update.unscented_motion_kernel`: the covariance formed only in the attitude's rows and
+   columns, the only ones the motion model moves), the mean's turn rate and the quasi-static deviation of the
    specific force (:meth:`.measurements.AccelModel.deviation`);
 2. the motion coverage's maxima and turned angles (:meth:`.vehicle.MotionCoverage.add_motion`) and the
    accel's quasi-static R (with the vehicle's var_v, which Python decides before the call);
@@ -50,7 +51,7 @@ from .divergence import NIS_NEGATIVE_TOL, nis_failure
 from .kernels import _njit
 from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_kernel, rot_log_rel_kernel
 from .kernels_unscented import _STATUS, _identity
-from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
+from .kernels_update import sigma_points_kernel, unscented_motion_kernel, update_kernel
 from .layout import DIP, SENSOR_SLICE
 from .predict import interp_weights
 from .start import calibrated
@@ -279,7 +280,7 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
         q[k] += q_att_jerk
     for k in range(3):
         q[k] += bil[k] * dt_blk**2
-    x_pred, Y, P_pred = unscented_kernel(X, Wm, Wc, q)
+    x_pred, Y, P_pred = unscented_motion_kernel(X, Wm, Wc, q, P)
     om = np.empty(3)
     for i in range(3):
         om[i] = (M_g[0, i, 0] * (w_mean[0] - o_g[0, 0]) + M_g[0, i, 1] * (w_mean[1] - o_g[0, 1])

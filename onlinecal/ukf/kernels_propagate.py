@@ -298,9 +298,10 @@ def propagate_kernel(X: Array, R_nom: Array, w: Array, dt: Array, c_mag: Array, 
                 Ps[3 * i, si] += n0
                 Ps[3 * i + 1, si] += n1
                 Ps[3 * i + 2, si] += n2
-                Pm[3 * i, si] += ck * n0
-                Pm[3 * i + 1, si] += ck * n1
-                Pm[3 * i + 2, si] += ck * n2
+                if has_mag:  # (Σ c_k P_k only where the block's mag is used: nothing reads it otherwise)
+                    Pm[3 * i, si] += ck * n0
+                    Pm[3 * i + 1, si] += ck * n1
+                    Pm[3 * i + 2, si] += ck * n2
     R_end = np.empty((Sd, 3, 3))
     f_body = np.empty((S, 3))
     h_body = np.zeros((S, 3))

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import kernels, unscented
-from .kernels_update import sigma_points_kernel, unscented_kernel, update_kernel
+from .kernels_update import sigma_points_kernel, unscented_kernel, unscented_motion_kernel, update_kernel
 from .unscented import Gating, Measurement, UpdateResult
 
 Array = NDArray[np.float64]
@@ -51,6 +51,19 @@ def predict_moments(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, Ar
         return unscented.predict_moments(X, Wm, Wc, q)
     out: tuple[Array, Array, Array] = unscented_kernel(
         np.ascontiguousarray(X, dtype=np.float64), Wm, Wc, np.ascontiguousarray(q, dtype=np.float64))
+    return out
+
+
+def predict_moments_motion(X: Array, Wm: Array, Wc: Array, q: Array, P: Array) -> tuple[Array, Array, Array]:
+    """:func:`predict_moments` of a motion block's sigma points X (2n + 1, n), drawn from (x, P) and propagated
+    (only their attitude columns moved): on the numpy backend the reference itself; compiled,
+    :func:`~onlinecal.ukf.kernels_update.unscented_motion_kernel` (P_pred's other entries P + diag(q), equal to
+    the reference's sum to rounding)."""
+    if kernels.backend() == "numpy":
+        return unscented.predict_moments(X, Wm, Wc, q)
+    out: tuple[Array, Array, Array] = unscented_motion_kernel(
+        np.ascontiguousarray(X, dtype=np.float64), Wm, Wc, np.ascontiguousarray(q, dtype=np.float64),
+        np.ascontiguousarray(P, dtype=np.float64))
     return out
 
 

@@ -20,7 +20,7 @@ from ..model import SENSORS
 from . import divergence, fastpath
 from .attitude_init import fold_attitude
 from .blocks import Blocks
-from .kernels_unscented import predict_moments, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
+from .kernels_unscented import predict_moments_motion, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
 from .layout import ATT, SENSOR_SLICE, index
 from .magdisturb import nis_in_order
 from .measurements import Offsets, gyro_offsets, motion_measurements, rest_measurements
@@ -233,7 +233,7 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
     dt_blk = float(t[-1] - cal._t_last)
     q = earth_rate_q(cal, block_process_noise(cal._process_noise(dt_blk, n["gyro"]), B, b, dt_blk, n["gyro"],
                                               cal.P), dt_blk)
-    x_pred, Y, P_pred = predict_moments(X, cal._Wm, cal._Wc, q)
+    x_pred, Y, P_pred = predict_moments_motion(X, cal._Wm, cal._Wc, q, cal.P)
     cal.R_nom = pred.R_end[0]
     T_reg = float(np.mean(temp_reg(cal, T))) if has_temp(cal) else 0.0
     rate = float(np.linalg.norm(pred.M_gyr @ (B.w_mean[b] - pred.o_gyr)))

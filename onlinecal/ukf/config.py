@@ -100,13 +100,14 @@ class UKFConfig:
     noise_high: float = 4.0
     noise_low: float = 2.0
     noise_tau_blocks: float = 10.0
-    # rad/s: a block turning faster than this (its mean rate less the gyro bias, beyond 3σ of the bias) is not
-    # read by the noise monitor nor by the vehicle detector's vibration test, until a vehicle is detected. In
+    # rad/s: a block turning faster than this (its mean rate less the gyro bias, beyond 3σ of the bias, or its
+    # rate's spread within the block beyond the gyro's noise: step.turning) is not read by the noise monitor
+    # nor by the vehicle detector's vibration test, until a vehicle is detected by its vibration. In
     # a hand's turn the third difference reads the hand's own broadband specific force, not the sensor's
     # noise: on the imu_tk Xsens session the accel's reads 0.98× the spec's variance in blocks below
     # 0.02 rad/s and 5–52× (medians) in the faster ones, and hand-held sessions (Ferraris, three MARG
-    # files, Xsens) were taken for vehicles from it (docs/flight.md). On a vehicle (detected) vibration is
-    # the accelerometer's noise at any rate, and every block is read
+    # files, Xsens) were taken for vehicles from it (docs/flight.md). On a vehicle detected by its vibration
+    # that is the accelerometer's noise at any rate, and every block is read
     noise_rate_max: float = 0.02
     # saturation: a reading repeated rail_run times in a row, of magnitude at least rail_min (rad/s,
     # m/s²), is the ADC rail; from then on readings at the rail are clipped

@@ -133,13 +133,15 @@ def wrong_bench(bench: Calibration | None) -> Calibration:
 
 
 def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10.0, rate: float = 200.0,
-               config: UKFConfig | None = None, latitude: float | None = DEFAULT_LATITUDE_DEG) -> FlightRun:
+               config: UKFConfig | None = None, latitude: float | None = DEFAULT_LATITUDE_DEG,
+               declination: float = 0.0) -> FlightRun:
     """One flight, replayed cold (``start="cold"``), from the bench calibration (``"bench"``) or from a
     wrong one (``"wrongbench"``, :func:`wrong_bench`). The flight's gyro senses the Earth's rotation at
     ``latitude`` (deg; None: not at all); the bench session is the paper profile's, without it (as the
-    paper figures were set)."""
+    paper figures were set); the field's horizontal part ``declination`` deg east of true north."""
     sim = simulate(profile, seed, duration=60.0 * minutes, imu_rate=rate, mag_rate=50.0,
-                   latitude=DEFAULT_LATITUDE_DEG if latitude is None else latitude, earth_rate=latitude is not None)
+                   latitude=DEFAULT_LATITUDE_DEG if latitude is None else latitude, earth_rate=latitude is not None,
+                   declination=declination)
     truth = sim.truth.calibration
     init = None if start == "cold" else bench_calibration(truth, seed)
     if start == "wrongbench":
@@ -318,6 +320,11 @@ def main() -> None:
     ap.add_argument("--latitude", type=float, default=DEFAULT_LATITUDE_DEG,
                     help=f"deg, where the flights' gyro senses the Earth's rotation (default {DEFAULT_LATITUDE_DEG})")
     ap.add_argument("--no-earth-rate", action="store_true", help="diagnostic: flights without the Earth's rotation")
+    ap.add_argument("--filter-latitude", action="store_true",
+                    help="the filter is told the flights' latitude (UKFConfig.latitude_deg, `replay --latitude`): "
+                         "it takes the Earth's rotation out of the gyro (onlinecal.ukf.earth)")
+    ap.add_argument("--declination-sigma", type=float, default=None,
+                    help="with --filter-latitude: σ of the declination the filter assumes (deg; default the config's)")
     ap.add_argument("--summary-of", default=None, metavar="JSON",
                     help="print the summary of a --save file (a run stopped early: the seeds it completed)")
     args = ap.parse_args()
@@ -328,10 +335,13 @@ def main() -> None:
     over = {k: v for k, v in (("rest_rate_sigma", args.rest_rate_sigma),
                               ("vehicle_accel_sigma", args.vehicle_accel_sigma),
                               ("vehicle_accel_tau", args.vehicle_accel_tau),
-                              ("sp_alpha", args.sp_alpha)) if v is not None}
+                              ("sp_alpha", args.sp_alpha),
+                              ("latitude_deg", args.latitude if args.filter_latitude else None),
+                              ("declination_sigma_deg", args.declination_sigma)) if v is not None}
     config = UKFConfig(**over) if over else None
     print("# flights' gyro: " + ("no Earth rate (diagnostic)" if args.no_earth_rate else
-          f"Earth rate at latitude {args.latitude:g}°") + "; bench sessions: paper profile, no Earth rate", flush=True)
+          f"Earth rate at latitude {args.latitude:g}°") + "; bench sessions: paper profile, no Earth rate"
+          + ("; the filter is given the latitude" if args.filter_latitude else ""), flush=True)
     runs = []
     # seeds outermost: a run stopped early still holds the same count for every profile and start
     for seed in range(args.start, args.start + args.seeds):

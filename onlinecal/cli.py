@@ -321,6 +321,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
     _check_out(a.json, "--json")
     _check_out(a.trace, "--trace", dash=False)
     _check_out(a.report, "--report", directory=True)
+    _ukf_config(a)  # --declination without --latitude is refused before the logs are read
     report = _report_dir(a.report) if a.report else None
     if report is None:
         # helper io: constant memory in the logs' length; the batch start on the logs' reduced stretches
@@ -348,7 +349,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
     with bar(sum(d.n_imu for d in logs), desc="replay", unit="samples") as pb:
         try:
-            res = replay_chunked(logs, init, trace_path=a.trace, on_progress=show)
+            res = replay_chunked(logs, init, trace_path=a.trace, on_progress=show, config=_ukf_config(a))
         except OSError as e:  # the trace file went away under us
             raise UsageError(f"{e.filename or a.trace}: cannot write ({e.strerror or e})") from None
     _warn(getattr(res, "warnings", []))
@@ -399,7 +400,7 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
             pb.set(i)
 
         res = replay_stream((r.blocks(REPLAY_CHUNK) for r in readers), init, chunk=REPLAY_CHUNK,
-                            trace_path=a.trace, on_progress=show)
+                            trace_path=a.trace, on_progress=show, config=_ukf_config(a))
     for r in readers:
         _warn([f"{r.path}: {w}" for w in r.warnings])
     _warn(res.warnings)
@@ -419,6 +420,19 @@ def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs
     return _show_health(health, "online calibration")
 
 
+def _ukf_config(a: argparse.Namespace) -> Any:
+    """The filter's configuration from the command line (``--latitude``), or None for the defaults."""
+    if getattr(a, "declination", None) is not None and getattr(a, "latitude", None) is None:
+        raise UsageError("--declination needs --latitude (it places the Earth's rotation, which needs the latitude)")
+    if getattr(a, "latitude", None) is None:
+        return None
+    from .ukf import UKFConfig
+
+    if a.declination is None:
+        return UKFConfig(latitude_deg=a.latitude)
+    return UKFConfig(latitude_deg=a.latitude, declination_deg=a.declination, declination_sigma_deg=1.0)
+
+
 def _replay_fleet(a: argparse.Namespace) -> int:
     """``replay --jobs N`` / ``--executor dask``: every log an independent unit (see onlinecal.fleet)."""
     from .files import dumps
@@ -436,6 +450,9 @@ def _replay_fleet(a: argparse.Namespace) -> int:
                          "replayed on its own and reported as one JSON line (--json OUT)")
     if a.scheduler and a.executor != "dask":
         raise UsageError("--scheduler is the address of a dask scheduler: use it with --executor dask")
+    if a.latitude is not None or a.declination is not None:
+        raise UsageError("--latitude and --declination belong to a single replay or run (the logs of a fleet are "
+                         "anywhere); replay each log with its own --latitude")
     init: Any = a.init if a.init in ("batch", "none") else _load_cal(a.init).to_dict()
     _check_out(a.json, "--json")
     jobs = a.jobs if a.jobs is not None else 1
@@ -505,7 +522,8 @@ def cmd_run(a: argparse.Namespace) -> int:
         raise UsageError(f"--init {a.init}: {e}") from None
     json_file = None if a.json == "-" else a.json
     try:
-        res = ukf.run_live(a.connect, init, duration_s=a.duration, json_out=json_file, trace_out=a.trace,
+        res = ukf.run_live(a.connect, init, config=_ukf_config(a), duration_s=a.duration, json_out=json_file,
+                           trace_out=a.trace,
                            checkpoint=a.checkpoint, checkpoint_every_s=a.checkpoint_every, resume=a.resume,
                            rate_hz=a.rate, apply=a.apply, transform=live_transform(init),
                            idle_timeout_s=a.idle_timeout or None, source_system=a.sysid, source_component=a.compid,
@@ -750,6 +768,32 @@ def _positive_int(s: str) -> int:
     return int(_POS_INT(s))
 
 
+def _add_latitude(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--latitude", type=_latitude_deg, default=None, metavar="DEG",
+                   help="where the vehicle is (degrees, north positive): the Earth's rotation is taken out of "
+                        "the gyro (its vertical part at once, the horizontal once a magnetometer holds the "
+                        "heading); default: not known, the gyro bias keeps an allowance for it")
+    p.add_argument("--declination", type=_declination_deg, default=None, metavar="DEG",
+                   help="with --latitude: the magnetic declination, east positive (e.g. from the World Magnetic "
+                        "Model at the log's position), taken as known to 1 deg; default: unknown, 0 ± 15 deg")
+
+
+def _latitude_deg(s: str) -> float:
+    """``replay/run --latitude``: degrees within ±90."""
+    v = float(_number("a latitude in degrees (−90…90)")(s))
+    if not abs(v) <= 90.0:
+        raise argparse.ArgumentTypeError(f"must be a latitude in degrees (−90…90), not {s!r}")
+    return v
+
+
+def _declination_deg(s: str) -> float:
+    """``replay/run --declination``: degrees within ±180."""
+    v = float(_number("a declination in degrees (−180…180)")(s))
+    if not abs(v) <= 180.0:
+        raise argparse.ArgumentTypeError(f"must be a declination in degrees (−180…180), not {s!r}")
+    return v
+
+
 def _latitude(s: str) -> float | str:
     """``simulate --latitude``: degrees within ±90, or ``none`` (no Earth rate)."""
     if s.strip().lower() in ("none", "off"):
@@ -881,6 +925,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fleet mode on local processes or on dask.distributed (extra onlinecal[dask])")
     p.add_argument("--scheduler", default=None, metavar="ADDR",
                    help="dask scheduler address (default: a LocalCluster of --jobs workers)")
+    _add_latitude(p)
     _add_scales(p)
     p.set_defaults(fn=cmd_replay)
 
@@ -907,6 +952,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="RAW_IMU rate asked of the vehicle (SET_MESSAGE_INTERVAL; 0: ask nothing; default 100)")
     p.add_argument("--apply", choices=["ardupilot", "px4"], default=None,
                    help="afterwards, set the calibration as vehicle parameters (PARAM_SET, each confirmed)")
+    _add_latitude(p)
     _add_scales(p)
     p.set_defaults(fn=cmd_run)
 

@@ -39,17 +39,19 @@ class SchedulerUnreachable(ConnectionError):
 
 
 def replay_chunked(logs: list[Any], init: Calibration | None, trace_path: str | Path | None = None,
-                   on_progress: Callable[[int, int], None] | None = None, chunk: int = REPLAY_CHUNK) -> Any:
+                   on_progress: Callable[[int, int], None] | None = None, chunk: int = REPLAY_CHUNK,
+                   config: Any = None) -> Any:
     """:func:`onlinecal.ukf.replay` with the logs fed in blocks of ``chunk`` IMU samples, calling
     ``on_progress(samples_done, samples_total)`` as it goes (within a log and across logs).
 
     Every CLI replay feeds this way whether or not a bar is drawn, so a result never depends on the terminal.
     Against feeding each log in one call (``replay(..., chunk=None)``) the result differs only in rounding
-    (~1e-9 relative): the filter estimates its sample rate from the first samples it is given.
+    (~1e-9 relative): the filter estimates its sample rate from the first samples it is given. ``config``:
+    the filter's UKFConfig (None: the defaults).
     """
     from .ukf import replay
 
-    return replay(logs, init, chunk=chunk, trace_path=trace_path, on_progress=on_progress)
+    return replay(logs, init, config, chunk=chunk, trace_path=trace_path, on_progress=on_progress)
 
 
 def log_start_time(path: str | Path, data: Any = None) -> tuple[float | None, str | None]:

@@ -307,8 +307,14 @@ def test_the_compiled_block_q_equals_the_python_process_noise(vehicle: bool) -> 
     cal._rate = 200.0
     cal._vehicle.active = vehicle
     g0, m0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["mag"].start
-    floor = (cal.config.rest_rate_sigma / 1.0) ** 2
+    from onlinecal.ukf.earth import allowance
+
     for trial in range(40):
+        # even trials the unknown latitude's allowance, odd ones a known latitude's per axis (no heading, tilted)
+        up = rng.normal(size=3)
+        cal._earth = allowance(None if trial % 2 == 0 else 47.4, False, cal.config.rest_rate_sigma, 15.0,
+                               (up / np.linalg.norm(up)).tolist())
+        floor = cal._earth[0][0] ** 2
         cal.x[m0 + 3 : m0 + 6] = rng.uniform(0.001, 3.0, 3)  # mag scale: gauss to milli-gauss units
         cal.x[g0 + 3 : g0 + 6] = 1.0 + rng.normal(0, 0.05, 3)
         A = rng.normal(size=(cal.n, cal.n)) * 1e-3
@@ -320,8 +326,8 @@ def test_the_compiled_block_q_equals_the_python_process_noise(vehicle: bool) -> 
         ref = step.earth_rate_q(cal, cal._process_noise(dt, s_g), dt).copy()
         rw, (mag_q, dens, fg, rwf) = fastpath._q_args(cal)
         new = fastpath.block_q_kernel(rw, dt, cal._rate, s_g, SENSOR_SLICE["mag"].start if mag_q else -1, dens, fg,
-                                      rwf, cal.x, cal.P, vehicle, g0, g0 + 3, cal.config.rest_rate_sigma,
-                                      cal.config.vehicle_accel_tau, fastpath._OM2, fastpath._TWO)
+                                      rwf, cal.x, cal.P, vehicle, g0, g0 + 3, np.asarray(cal._earth[0]),
+                                      cal.config.vehicle_accel_tau, cal._earth[1], fastpath._TWO)
         assert np.array_equal(ref, new, equal_nan=True), trial
         assert (ref[g0] > rw[g0] * dt) == vehicle and ref[0] > 0  # the floor topped the first axis up
 

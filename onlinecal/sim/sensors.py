@@ -49,10 +49,11 @@ PAPER_GYRO_BIAS = (0.0027, 0.1605, 0.0660)
 PAPER_GYRO_SCALE = (1.1526, 1.1327, 1.1425)
 
 
-def field_world(dip_deg: float = FIELD_DIP_DEG) -> Array:
-    """Unit magnetic field in the world frame (ENU: north along y, dip downwards)."""
-    d = np.radians(dip_deg)
-    return np.array([0.0, np.cos(d), -np.sin(d)])
+def field_world(dip_deg: float = FIELD_DIP_DEG, declination_deg: float = 0.0) -> Array:
+    """Unit magnetic field in the world frame (ENU: true north along y, dip downwards; its horizontal part
+    ``declination_deg`` east of true north)."""
+    d, D = np.radians(dip_deg), np.radians(declination_deg)
+    return np.array([np.sin(D) * np.cos(d), np.cos(D) * np.cos(d), -np.sin(d)])
 
 
 def paper_truth(rng: np.random.Generator) -> Calibration:
@@ -290,11 +291,14 @@ def simulate(
     noise: float = 1.0,
     latitude: float = DEFAULT_LATITUDE_DEG,
     earth_rate: bool | None = None,
+    declination: float = 0.0,
 ) -> Simulation:
     """Simulate a session. Returns raw data (ImuData), the truth and the trajectory.
 
     ``profile``: ``paper``, ``flight`` or a vehicle, ``multirotor`` / ``fixedwing`` with options
-    (:func:`parse_profile`: ``multirotor:vibration=30,mag_interference=0.2``); a vehicle's rotor vibration
+    (:func:`parse_profile`: ``multirotor:vibration=30,mag_interference=0.2``); ``declination`` (deg, east
+    positive) turns the field's horizontal part from true north (the Earth's rotation stays on true north;
+    the truth file's ``field_world`` records it); a vehicle's rotor vibration
     (healthy by default) is added to the accelerometer's specific force while armed, and its interference
     to the magnetometer's field, both before the sensor model (they are physical inputs).
     ``duration`` cuts the paper profile (or sets the flight length); ``noise`` scales every sensor's
@@ -312,7 +316,7 @@ def simulate(
     T = traj.duration if duration is None else min(duration, traj.duration)
     t_imu, t_mag = sample_times(T, imu_rate, mag_rate)
     mi, mm = traj.evaluate(t_imu), traj.evaluate(t_mag)
-    h_W = field_world()
+    h_W = field_world(declination_deg=declination)
     h_B = np.einsum("nji,j->ni", mm.R, h_W)
     vehicle: dict[str, Any] = {}
     if isinstance(traj, VehicleTrajectory):

@@ -157,8 +157,11 @@ class Blocks:
     jerk_l: list[float] = field(init=False)
     jerk_n_l: list[float] = field(init=False)
     var3_l: dict[str, list[float]] = field(init=False)
+    # the last row of w_ext the Earth's rotation was taken out of (.earth.correct_block; -1: none)
+    earth_upto: int = field(init=False)
 
     def __post_init__(self) -> None:
+        self.earth_upto = -1
         self.lo_l, self.hi_l = self.lo.tolist(), self.hi.tolist()
         self.mlo_l, self.mhi_l = self.mlo.tolist(), self.mhi.tolist()
         self.jerk_l, self.jerk_n_l = self.jerk.tolist(), np.asarray(self.jerk_n, dtype=float).tolist()

@@ -6,6 +6,7 @@ comment at each setting says what it does and, where it was chosen by a measurem
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -82,6 +83,16 @@ class UKFConfig:
     # heading and latitude (uniform over the Earth's surface: E[sin²φ] = 1/3) rms Ω_E/√3 on every axis
     # (was 5e-5, "micro-motion"; with Earth rate in the flights' gyro that left the cold NEES ~0.6/dof)
     rest_rate_sigma: float = 7.292115e-5 / 3**0.5
+    # deg, where the vehicle is (a log's GPS, `--latitude`): the Earth's rotation is taken out of the raw rates
+    # (.earth.correct_block) and the allowances above shrink to what the declination leaves (.earth.allowance);
+    # None: not known, the allowance for any latitude
+    latitude_deg: float | None = None
+    # deg, east positive: the magnetic declination D (the filter's heading is magnetic, the Earth's axis points to
+    # true north), and its σ: unknown, 0 ± 15° (the World Magnetic Model's charts put most of the populated
+    # mid-latitudes within ±15°); `--declination` gives it with σ 1° (the model's error away from local
+    # anomalies is a fraction of a degree). The allowance across north is Ω_E cos φ · σ_D
+    declination_deg: float = 0.0
+    declination_sigma_deg: float = 15.0
     trace_every_s: float = 1.0
     trace_max_rows: int = 100_000
     max_events: int = 1000  # events kept (oldest dropped beyond); the count of all is in nis_summary
@@ -143,6 +154,15 @@ class UKFConfig:
     gyro_spec: SensorSpec = GYRO_SPEC
     accel_spec: SensorSpec = ACCEL_SPEC
     mag_spec: SensorSpec = MAG_SPEC
+
+    def __post_init__(self) -> None:
+        lat = self.latitude_deg
+        if lat is not None and not (math.isfinite(lat) and abs(lat) <= 90.0):
+            raise ValueError(f"latitude_deg must be within ±90°, not {lat!r}")
+        if not (math.isfinite(self.declination_deg) and abs(self.declination_deg) <= 180.0):
+            raise ValueError(f"declination_deg must be within ±180°, not {self.declination_deg!r}")
+        if not (math.isfinite(self.declination_sigma_deg) and 0.0 <= self.declination_sigma_deg <= 180.0):
+            raise ValueError(f"declination_sigma_deg must be within 0…180°, not {self.declination_sigma_deg!r}")
 
     def sensor_specs(self) -> dict[str, SensorSpec]:
         """{sensor: spec} of gyro, accel, mag."""

@@ -56,7 +56,6 @@ from .layout import DIP, SENSOR_SLICE
 from .predict import interp_weights
 from .start import calibrated
 from .unscented import UpdateResult
-from .vehicle import OMEGA_E_HORIZONTAL_RMS
 
 if TYPE_CHECKING:
     from .blocks import Blocks
@@ -106,7 +105,7 @@ def _bilinear_var(P: Array, g0: int) -> Array:
 @_njit
 def block_q_kernel(rw: Array, dt: float, rate: float, sigma_gyr: float, mag_col: int, mag_dens: float,
                    field_gauss: float, rw_factor: float, x: Array, P: Array, earth: bool, bias_col: int,
-                   scale_col: int, sigma_rest: float, tau: float, om2: float, two: float) -> Array:
+                   scale_col: int, sigma_rest: Array, tau: float, om2: float, two: float) -> Array:
     """The block's Q diagonal (n,) before the block's own terms: :meth:`.noise.NoiseModel.process_noise` of
     :meth:`.noise.NoiseModel.cal_rw` and, with ``earth`` (a vehicle), :func:`.step.earth_rate_q` — in one pass,
     the same operations in the same order as the Python they replace, so the same bits.
@@ -115,7 +114,7 @@ def block_q_kernel(rw: Array, dt: float, rate: float, sigma_gyr: float, mag_col:
     here from x: (density · unit/``field_gauss`` · rw_factor)², unit = 1 / mean mag scale; ``mag_col`` the
     mag bias's first column, −1 without a mag spec); dt s the block; ``rate`` Hz; ``sigma_gyr`` rad/s per
     sample; P (n, n) the covariance Q adds to; ``bias_col``, ``scale_col`` the gyro's bias and scale columns;
-    ``sigma_rest`` rad/s, ``tau`` s and ``om2`` = Ω_h² (rad/s)² as :func:`.vehicle.earth_rate_noise`;
+    ``sigma_rest`` (3,) rad/s per gyro axis, ``tau`` s and ``om2`` = Ω_h² (rad/s)² as :func:`.vehicle.earth_rate_noise`;
     ``two`` = 2.0 at run time (libm's ``pow``, as Python's ``**2``: see :func:`motion_kernel`)."""
     n = rw.shape[0]
     q = np.empty(n)
@@ -132,9 +131,8 @@ def block_q_kernel(rw: Array, dt: float, rate: float, sigma_gyr: float, mag_col:
         q[k] = att
     if earth:
         s_gyr = ((x[scale_col] + x[scale_col + 1]) + x[scale_col + 2]) / 3.0
-        floor = math.pow(sigma_rest / s_gyr, two)
         for k in range(bias_col, bias_col + 3):
-            v = floor - P[k, k]
+            v = math.pow(sigma_rest[k - bias_col] / s_gyr, two) - P[k, k]
             q[k] += v if not v <= 0.0 else 0.0
         a = om2 * tau * dt
         for k in range(3):
@@ -222,7 +220,7 @@ def _model_pair_shared(p: Array, g1: int, g2: int) -> tuple[Array, Array, Array]
 def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
                    c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, rw: Array, rate: float,
                    sigma_gyr: float, mag_q: bool, mag_dens: float, field_gauss: float, rw_factor: float,
-                   earth: bool, sigma_rest: float, tau: float, om2: float, two: float,
+                   earth: bool, sigma_rest: Array, tau: float, om2: float, two: float,
                    q_att_jerk: float, dt_blk: float, w_mean: Array, a_mean: Array, sig_mean: float,
                    gravity: float, g0: int, a0: int, m0: int, dip_col: int
                    ) -> tuple[bool, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, float]:
@@ -360,7 +358,7 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
 def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
                   c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, rw: Array, rate: float,
                   sigma_gyr: float, mag_q: bool, mag_dens: float, field_gauss: float, rw_factor: float,
-                  earth: bool, sigma_rest: float, tau: float, om2: float, q_att_jerk: float, dt_blk: float,
+                  earth: bool, sigma_rest: Array, tau: float, om2: float, q_att_jerk: float, dt_blk: float,
                   w_mean: Array, a_mean: Array, sig_mean: float, gravity: float,
                   g0: int, a0: int, m0: int, dip_col: int, dev_bail: float, use_acc: bool, dev_gain: float,
                   lever_m: float, var_v: float, z_mag: Array, var_mag: float, hold_acc: int, hold_mag: int,
@@ -541,7 +539,6 @@ def set_merged(on: bool) -> bool:
 
 _merged = True
 _TWO = 2.0  # the squares' exponent, a run-time value in the kernels (see motion_kernel)
-_OM2 = OMEGA_E_HORIZONTAL_RMS**2  # Ω_h² as .vehicle.earth_rate_noise forms it (a Python **2: libm's pow)
 
 
 def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict[str, float],
@@ -586,8 +583,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         cov = cal._coverage
         stage, X, x_pred, Y, P_pred, f_body, h_body, s_o, s_Mi, om, Rs, info, x, P = motion_kernel(
             cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
-            lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
-            c.vehicle_accel_tau, _OM2, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, np.asarray(cal._earth[0]),
+            c.vehicle_accel_tau, cal._earth[1], jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
             mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates, lay.consider,
             float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
@@ -611,8 +608,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     else:
         ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
             cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
-            lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, c.rest_rate_sigma,
-            c.vehicle_accel_tau, _OM2, _TWO, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
+            lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, np.asarray(cal._earth[0]),
+            c.vehicle_accel_tau, cal._earth[1], _TWO, jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP)
         if not ok:
             cal._diverged("covariance is not positive definite", tl)
@@ -687,7 +684,7 @@ def _step_module() -> Any:
 @_njit
 def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.intp], R_nom: Array, Wm: Array,
                        Wc: Array, has_acc: bool, a_mean: Array, sig_a: float, has_mag: bool, m_mean: Array,
-                       var_mag: float, w_mean: Array, var_rest: float, hold_acc: int, hold_mag: int, hold_gyr: int,
+                       var_mag: float, w_mean: Array, var_rest: Array, hold_acc: int, hold_mag: int, hold_gyr: int,
                        gravity: float, dev_gain: float, gates: Array, consider: NDArray[np.bool_], yaw_var: float,
                        g0: int, a0: int, m0: int, dip_col: int
                        ) -> tuple[bool, Array, Array, Array, NDArray[np.int64], Array, Array, bool, Array, bool]:
@@ -697,7 +694,7 @@ def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.int
     R_nom exp([δθ]_x), the measurements of :func:`.measurements.rest_measurements` — the rest's mean accel
     a_mean (3,) against g Rᵀe_z with the quasi-static R (noise σ sig_a), where has_acc; its mean mag m_mean
     against Rᵀh_world(dip) with R = var_mag, where has_mag; the mean raw rate w_mean against the gyro bias
-    with R = var_rest (not gated); each plus its hold offset (column ≥ 0) — the static update with the
+    with R = diag(var_rest) (3,) (not gated); each plus its hold offset (column ≥ 0) — the static update with the
     posterior's predicted measurements (:func:`.kernels_update.update_kernel`, want_post), and the fold
     (:func:`fold_kernel`). g0, a0, m0 the sensors' first columns, dip_col the dip's.
 
@@ -775,7 +772,7 @@ def rest_update_kernel(x0: Array, P0: Array, scale: float, order: NDArray[np.int
                 Z[s, c + i] = Z[s, c + i] + X[s, hold_gyr + i]
     for i in range(3):
         z[c + i] = w_mean[i]
-        r[c + i] = var_rest
+        r[c + i] = var_rest[i]
     gated[k] = False
     gk[k] = np.inf
     Y = np.empty((S, n))

@@ -58,7 +58,7 @@ from .rest import RestAccumulator
 from .state import StateLayout, choose_gauge, grow, initial_state, prior, reset_states
 from .stream import process
 from .unscented import merwe_weights
-from .vehicle import MotionCoverage, VehicleDetector
+from .vehicle import OMEGA_E_HORIZONTAL_RMS, MotionCoverage, VehicleDetector
 
 Array = NDArray[np.float64]
 STATE_SCHEMA = checkpoint.STATE_SCHEMA
@@ -113,8 +113,10 @@ class OnlineCalibrator:
         self._specs = c.sensor_specs()
         self._noise = NoiseModel(self._specs)
         self._models = Models(AccelModel(c.gravity, c.acc_dev_gain, c.acc_lever_m), MagModel(),
-                              ZeroRateModel(c.rest_rate_sigma))
+                              ZeroRateModel((c.rest_rate_sigma,) * 3))
         self.gauge, self._gauge_terms = choose_gauge(self.init, c)
+        # the Earth-rate allowance (σ rad/s, Ω_h² (rad/s)²): .earth.allowance, per block where the latitude is known
+        self._earth = ((c.rest_rate_sigma,) * 3, OMEGA_E_HORIZONTAL_RMS**2)
 
     # ------------------------------------------------------------------------------------------
     # state
@@ -298,8 +300,15 @@ class OnlineCalibrator:
     def observability_report(self) -> dict[str, Any]:
         """Which terms the data determined, which not, why, and what motion would determine them
         (:func:`.vehicle.observability_report`), with the motion's coverage and the vehicle detector."""
-        return report_of(self.lay, self.sigma(), self.prior_sigma, self._coverage, self._vehicle,
-                         self.config.excited_ratio, bool(self._mag.enabled))
+        rep = report_of(self.lay, self.sigma(), self.prior_sigma, self._coverage, self._vehicle,
+                        self.config.excited_ratio, bool(self._mag.enabled))
+        c = self.config
+        known = c.latitude_deg is not None
+        rep["earth_rate"] = {"latitude_deg": c.latitude_deg,
+                             "declination_deg": c.declination_deg if known else None,
+                             "declination_sigma_deg": c.declination_sigma_deg if known else None,
+                             "heading_known": not self._mag.yaw_free, "allowance_rad_s": list(self._earth[0])}
+        return rep
 
     def missing_motion(self) -> list[str]:
         """What motion is still needed to excite the parameters that are not yet excited."""

@@ -126,9 +126,10 @@ def gravity_body(R: Array) -> Array:
 @dataclass(frozen=True)
 class ZeroRateModel:
     """Gyroscope at rest: the raw reading is its bias o_gyr (eq. 1 with ω = 0), plus the hold offset,
-    the temperature-bias term and the g-sensitivity K·f. ``rest_rate_sigma`` rad/s: micro-motion."""
+    the temperature-bias term and the g-sensitivity K·f. ``rest_rate_sigma`` rad/s per gyro axis: what a gyro at
+    rest reads besides its bias (the Earth's rotation, or what is left of it: :func:`.earth.allowance`)."""
 
-    rest_rate_sigma: float
+    rest_rate_sigma: tuple[float, float, float]
 
     def h(self, X: Array, off: Offsets = Offsets(), T_reg: float = 0.0, f_cal: Array | None = None) -> Array:
         """Predicted raw rate (S, 3) rad/s for sigma points X (S, n); f_cal (3,) the calibrated specific
@@ -142,10 +143,10 @@ class ZeroRateModel:
             Z = Z + X[:, off.gsens] * f_cal
         return Z
 
-    def variance(self, info: float, s_gyr: float) -> float:
-        """Per-axis variance (rad/s)²: 1/info (info = Σ N/σ², the mean's information) plus the micro-motion
+    def variance(self, info: float, s_gyr: float) -> Array:
+        """Per-axis variance (3,) (rad/s)²: 1/info (info = Σ N/σ², the mean's information) plus the
         allowance (rest_rate_sigma / s_gyr)² in raw units (s_gyr the mean gyro scale)."""
-        return 1.0 / info + (self.rest_rate_sigma / s_gyr) ** 2
+        return np.array([1.0 / info + (s / s_gyr) ** 2 for s in self.rest_rate_sigma])
 
 
 
@@ -226,5 +227,5 @@ def rest_measurements(mod: Models, X: Array, R_nom: Array, sens: tuple[Array, Ar
         Zm = mod.mag.h(X, field_body(R_s, X[:, DIP]), off[1], (o[S:], Minv[S:]))
         meas.append(Measurement("mag", acc.sm / acc.nm, Zm, np.full(3, 1.0 / acc.info("mag"))))
     Zg = mod.zr.h(X, off[2], T_reg, f_cal)
-    meas.append(Measurement("rest", acc.gyro_mean(), Zg, np.full(3, mod.zr.variance(acc.info("gyro"), s_gyr))))
+    meas.append(Measurement("rest", acc.gyro_mean(), Zg, mod.zr.variance(acc.info("gyro"), s_gyr)))
     return meas

@@ -11,19 +11,20 @@ measurement on the state the rest began with, :mod:`.rest`). :func:`gated_update
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..model import SENSORS
-from . import divergence, fastpath
+from . import divergence, earth, fastpath
 from .attitude_init import fold_attitude
 from .blocks import Blocks
 from .kernels_unscented import predict_moments_motion, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
 from .layout import ATT, SENSOR_SLICE, index
 from .magdisturb import nis_in_order
-from .measurements import Offsets, gyro_offsets, motion_measurements, rest_measurements
+from .measurements import Offsets, ZeroRateModel, gyro_offsets, motion_measurements, rest_measurements
 from .outputs import temp_regressor, trace_row
 from .predict import block_process_noise, propagate_sigma_points
 from .propagate import sensor_models
@@ -50,6 +51,9 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
     tl = float(t[-1])
     use_mag, mag_changed = mag_block(cal, tm_all[ml:mh], m_all[ml:mh], tl)
+    if c.latitude_deg is not None:  # (after mag_block: it may have turned the heading to north)
+        earth.correct_block(cal, B, b)
+        earth_allowance(cal)
     # σ is read only where the block's field is judged (a used mag with samples): not computed otherwise
     sig = cal.sigma() if use_mag and mh > ml else _UNJUDGED
     use_mag = cal._magd.gate(use_mag, cal.x, sig, m_all[ml:mh], a, tl, c.gravity, cal._event,
@@ -203,14 +207,24 @@ def vehicle_event(cal: OnlineCalibrator, why: str | None, tl: float) -> None:
         cal._event("vehicle", why + VEHICLE_NOTE, tl)
 
 
+def earth_allowance(cal: OnlineCalibrator) -> None:
+    """The Earth-rate allowance of this block (:func:`.earth.allowance`: it shrinks once a heading is held)
+    into ``cal._earth`` and the zero-rate model."""
+    c = cal.config
+    cal._earth = earth.allowance(c.latitude_deg, not cal._mag.yaw_free, c.rest_rate_sigma, c.declination_sigma_deg,
+                                 cal.R_nom[2].tolist())
+    if cal._models.zr.rest_rate_sigma != cal._earth[0]:
+        cal._models = replace(cal._models, zr=ZeroRateModel(cal._earth[0]))
+
+
 def earth_rate_q(cal: OnlineCalibrator, q: Array, dt_blk: float) -> Array:
     """The block's Q diagonal ``q`` (n,) with, on a vehicle, what the Earth's rotation (which the gyro model
     lacks) leaves unknown (:func:`.vehicle.earth_rate_noise`, in place); both motion paths call it (the
     compiled one before its kernel adds the block's own terms: the terms are additive)."""
     if cal._vehicle.active:
         sx, sy, sz = cal.x[_GYR_SCALE].tolist()  # np.mean of three, ((a + b) + c) / 3, on Python floats
-        earth_rate_noise(q, cal.P, _GYR_BIAS, (sx + sy + sz) / 3.0, cal.config.rest_rate_sigma,
-                         cal.config.vehicle_accel_tau, dt_blk)
+        earth_rate_noise(q, cal.P, _GYR_BIAS, (sx + sy + sz) / 3.0, cal._earth[0],
+                         cal.config.vehicle_accel_tau, dt_blk, cal._earth[1])
     return q
 
 

@@ -127,12 +127,15 @@ def vehicle_accel_var(sigma: float, tau: float, dt_block: float) -> float:
 OMEGA_E_HORIZONTAL_RMS = 7.292115e-5 * (2.0 / 3.0) ** 0.5
 
 
-def earth_rate_noise(q: Array, P: Array, bias: slice, s_gyr: float, sigma: float, tau: float, dt: float) -> Array:
+def earth_rate_noise(q: Array, P: Array, bias: slice, s_gyr: float, sigma: tuple[float, float, float], tau: float,
+                     dt: float,
+                     om2: float = OMEGA_E_HORIZONTAL_RMS**2) -> Array:
     """What the Earth's rotation, which the gyro model lacks, leaves unknown in flight: added in place to
     the block's Q diagonal ``q`` (n,). ``P`` (n, n) the covariance Q adds to,
     ``bias`` the gyro bias's slice, ``s_gyr`` the gyro's mean scale (the bias is in raw units), ``sigma``
-    rad/s the per-axis allowance for the Earth rate on the bias (:attr:`UKFConfig.rest_rate_sigma`, the
-    zero-rate update's), ``tau`` s the correlation time of the attitude disturbance
+    (3,) rad/s the per-axis allowance for the Earth rate on the bias (:attr:`UKFConfig.rest_rate_sigma`, the
+    zero-rate update's), ``om2`` (rad/s)² the horizontal rate error's variance (Ω_h²; both smaller where the
+    latitude is known: :func:`.earth.allowance`), ``tau`` s the correlation time of the attitude disturbance
     (:attr:`UKFConfig.vehicle_accel_tau`: one independent accelerometer measurement per τ_v), ``dt`` s.
 
     A gyro senses Ω_E = 7.29e-5 rad/s (the Earth's sidereal rate) projected on its axes; in a local
@@ -156,11 +159,10 @@ def earth_rate_noise(q: Array, P: Array, bias: slice, s_gyr: float, sigma: float
       was (63 of 528)."""
     # element by element on Python floats (issue 15: a third of the numpy calls' cost per block): the same
     # operations as q[bias] += np.maximum(0, floor − diag(P)[bias]); q[ATT] += Ω_h²τ dt, so the same bits
-    floor = (sigma / s_gyr) ** 2
-    for k in range(bias.start, bias.stop):
-        v = floor - P[k, k]
+    for i, k in enumerate(range(bias.start, bias.stop)):
+        v = (sigma[i] / s_gyr) ** 2 - P[k, k]
         q[k] += v if not v <= 0.0 else 0.0  # np.maximum(0, v): v where positive (or NaN), else 0
-    a = OMEGA_E_HORIZONTAL_RMS**2 * tau * dt
+    a = om2 * tau * dt
     for k in range(ATT.start, ATT.stop):
         q[k] += a
     return q
@@ -370,4 +372,15 @@ def observability_text(rep: dict[str, Any]) -> list[str]:
     if rep["vehicle"]["active"]:
         lines.append(f"vehicle motion from t = {rep['vehicle']['since']:.1f} s ({rep['vehicle']['reason']}): "
                      "the accelerometer is a gravity reference only at rest")
+    e = rep.get("earth_rate")
+    if e is not None:
+        if e["latitude_deg"] is None:
+            lines.append(f"the Earth's rotation is not taken out of the gyro (latitude unknown): the gyro bias "
+                         f"includes its projection (up to 7.3e-05 rad/s), allowed for as "
+                         f"{max(e['allowance_rad_s']):.1e} rad/s per axis (give --latitude to take it out)")
+        else:
+            part = (f"magnetic heading, declination {e.get('declination_deg') or 0.0:g}° ± "
+                    f"{e['declination_sigma_deg']:g}°" if e["heading_known"] else "vertical part only: no heading")
+            lines.append(f"the Earth's rotation is taken out of the gyro at latitude {e['latitude_deg']:g}° ({part}); "
+                         f"what is left is allowed for: up to {max(e['allowance_rad_s']):.1e} rad/s per axis")
     return lines

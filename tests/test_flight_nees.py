@@ -137,7 +137,7 @@ def test_earth_rate_noise_tops_up_the_gyro_bias_and_the_attitude():
     P = np.eye(n) * 1e-2
     s_gyr = 1.15
     P[b, b] = np.diag([1e-12, (2 * sigma / s_gyr) ** 2, 1e-10])  # x, z tight; y already wider
-    q = earth_rate_noise(np.zeros(n), P, b, s_gyr, sigma, 30.0, 0.05)
+    q = earth_rate_noise(np.zeros(n), P, b, s_gyr, (sigma,) * 3, 30.0, 0.05)
     floor = (sigma / s_gyr) ** 2
     assert q[b][0] == pytest.approx(floor - 1e-12) and q[b][1] == 0.0 and q[b][2] == pytest.approx(floor - 1e-10)
     assert np.allclose(q[ATT], OMEGA_E**2 * (2 / 3) * 30.0 * 0.05, rtol=1e-12)

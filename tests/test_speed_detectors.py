@@ -324,7 +324,7 @@ def test_earth_rate_noise_on_python_floats_equals_the_numpy_form_bit_for_bit() -
         ref = q.copy()
         ref[b] += np.maximum(0.0, (sigma / s_gyr) ** 2 - np.diag(P)[b])
         ref[ATT] += OMEGA_E_HORIZONTAL_RMS**2 * tau * dt
-        new = earth_rate_noise(q.copy(), P, b, s_gyr, sigma, tau, dt)
+        new = earth_rate_noise(q.copy(), P, b, s_gyr, (sigma,) * 3, tau, dt)
         assert np.array_equal(new, ref, equal_nan=True), trial
         raised += int(((sigma / s_gyr) ** 2 > np.diag(P)[b]).sum())
         kept += int(((sigma / s_gyr) ** 2 <= np.diag(P)[b]).sum())

@@ -158,6 +158,9 @@ def _start(checkpoint: str | Path | None, resume: bool, init: Calibration | None
         ck, cal = load_checkpoint(checkpoint)
         if init is not None:
             print("onlinecal run: --init is ignored when resuming (the checkpoint has its own)", file=out)
+        if config is not None and config.latitude_deg != cal.config.latitude_deg:
+            print(f"onlinecal run: --latitude is ignored when resuming (the checkpoint's filter has "
+                  f"{cal.config.latitude_deg if cal.config.latitude_deg is not None else 'none'})", file=out)
         if duration_s is None:
             duration_s = ck.get("duration_s")
         return ck, cal, duration_s

@@ -92,12 +92,12 @@ def test_offsets_add_to_the_reading():
     acc = AccelModel(G0, 5.0, 0.005)
     base = acc.h(X, f)
     assert np.allclose(acc.h(X, f, Offsets(hold=hold, temp=temp), T_reg=2.0) - base, X[:, hold] + 2 * X[:, temp])
-    zr = ZeroRateModel(5e-5)
+    zr = ZeroRateModel((5e-5, 5e-5, 2e-5))  # per gyro axis (.earth.allowance)
     assert np.array_equal(zr.h(X), X[:, index("gyro", "bias")])
     fc = np.array([0.1, -0.2, 9.8])
     assert np.allclose(zr.h(X, Offsets(hold=hold, gsens=temp), f_cal=fc), X[:, index("gyro", "bias")] + X[:, hold]
                        + X[:, temp] * fc)
-    assert zr.variance(1e6, 1.0) == pytest.approx(1e-6 + 5e-5**2, rel=1e-15)
+    assert zr.variance(1e6, 1.0) == pytest.approx([1e-6 + 5e-5**2, 1e-6 + 5e-5**2, 1e-6 + 2e-5**2], rel=1e-15)
 
 
 def test_accel_variance_is_the_noise_when_the_norm_is_gravity():

@@ -18,11 +18,12 @@ the filter sees them (:func:`correct_block`), and the allowance shrinks to what 
   Without a heading the horizontal part stays an allowance: Ω_E cos φ on the attitude, and on the bias
   per axis its share of the level plane at a heading the filter does not know (:func:`allowance`).
 
-The subtraction uses the state's estimate: ω_E in the body frame at the block's middle from the nominal
-attitude at its start turned by half the block's mean rate (first order: at 1 rad/s and 0.1-s blocks the
-vector turns 0.05 rad, 3.6e-6 rad/s), into raw units by the gyro's per-axis scale only (its small angles,
-~1e-2 rad, change a 7.3e-5 rad/s vector by < 1e-6). Both errors are an order below the declination's
-allowance (1.2e-5 rad/s at 47° and σ_D = 15°).
+The subtraction uses the state's estimate: ω_E in the body frame at the block's middle, from the nominal
+attitude at its start turned by half the block's mean rate (to first order; the block's own turn, 0.05 rad
+either side at 1 rad/s in a 0.1-s block, averages out to first order, and the second order is ~1e-7 rad/s),
+into raw units through the estimated M⁻¹ (eq. 1). The estimate's own errors (attitude ~1e-2 rad, scale and
+angles ~1e-3 once determined) move a 7.3e-5 rad/s vector by ≲ 7e-7 rad/s, below the declination's
+allowance (1.3e-5 rad/s at 47° and σ_D = 15°; 8.6e-7 at 1°).
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..specs import OMEGA_EARTH as OMEGA_E
-from .layout import index
+from .layout import SENSOR_SLICE, index
+from .propagate import sensor_models
 from .vehicle import OMEGA_E_HORIZONTAL_RMS
 
 if TYPE_CHECKING:
@@ -43,6 +45,7 @@ if TYPE_CHECKING:
 
 Array = NDArray[np.float64]
 _GYR_BIAS, _GYR_SCALE = index("gyro", "bias"), index("gyro", "scale")
+_GYR = SENSOR_SLICE["gyro"]
 
 
 def earth_rate_world(latitude_deg: float) -> tuple[float, float]:
@@ -104,7 +107,10 @@ def correct_block(cal: OnlineCalibrator, B: Blocks, b: int) -> None:
     # a world-fixed vector seen from a body turned by θ: v − θ × v (first order)
     vm = [v[0] - (th[1] * v[2] - th[2] * v[1]), v[1] - (th[2] * v[0] - th[0] * v[2]),
           v[2] - (th[0] * v[1] - th[1] * v[0])]
-    e = np.array([vm[k] / s[k] for k in range(3)])
+    # into raw units through the gyro's whole M⁻¹ (eq. 1; its small angles, ~1e-2 rad, would otherwise leave
+    # ~7e-7 rad/s, about the allowance of a declination known to 1°)
+    Minv = sensor_models(x[None, _GYR])[2][0]
+    e = Minv @ np.array(vm)
     first = max(i, B.earth_upto + 1)  # w_ext row k is the sample before sample k of the buffer
     B.w_ext[first : j + 1] -= e
     B.w_mean[b] -= e

@@ -185,7 +185,8 @@ def cmd_simulate(a: argparse.Namespace) -> int:
         check_combination(effects)
         lat = {} if a.latitude is None else ({"earth_rate": False} if a.latitude == "none" else
                                               {"earth_rate": True, "latitude": a.latitude})
-        sim = simulate(a.profile, a.seed, a.duration, a.rate, a.mag_rate, effects=effects, **lat)
+        sim = simulate(a.profile, a.seed, a.duration, a.rate, a.mag_rate, effects=effects, **lat,
+                       declination=a.declination)
     except EffectError as e:  # the message names the spec and what is wrong with it
         raise UsageError(f"--effect: {e}") from e
     except ProfileError as e:
@@ -899,6 +900,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--latitude", type=_latitude, default=None, metavar="DEG|none",
                    help="the gyro senses the Earth's rotation at this latitude; none: not at all (default: the "
                         "profile's — multirotor and fixedwing at 47.397742°, paper and flight none)")
+    p.add_argument("--declination", type=_declination_deg, default=0.0, metavar="DEG",
+                   help="the field's horizontal part DEG east of true north (the Earth's rotation stays on true "
+                        "north; default 0)")
     p.set_defaults(fn=cmd_simulate)
 
     p = command("batch", "the paper's offline pipeline over logs of one sensor unit")

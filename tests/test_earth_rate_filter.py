@@ -131,3 +131,21 @@ def test_declination_places_true_north(seed: int) -> None:
     bad, _ = run(-12.0)
     assert np.all(np.abs(err) < 1e-5) and np.all(np.abs(z) < 3.0), (err, z)
     assert np.linalg.norm(bad[:2]) > 2.0 * np.linalg.norm(err[:2]), (bad, err)
+
+
+def test_simulate_declination_on_the_command_line(tmp_path: Path) -> None:
+    """``simulate --declination 12`` writes a truth whose field is 12° east of true north (ENU: its horizontal
+    part's azimuth atan2(east, north)), the Earth's rotation still on true north; a declination beyond ±180° is
+    one line, exit 2."""
+    log = tmp_path / "d.csv"
+    r = subprocess.run([sys.executable, "-m", "onlinecal", "simulate", "--out", str(log), "--profile", "multirotor",
+                        "--duration", "40", "--declination", "12"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    truth = json.loads((tmp_path / "d.csv.truth.json").read_text())
+    h = truth["field_world"]
+    assert math.degrees(math.atan2(h[0], h[1])) == pytest.approx(12.0, abs=1e-9)
+    w = truth["earth_rate"]["world"]
+    assert w[0] == pytest.approx(0.0, abs=1e-20) and w[1] > 0
+    r = subprocess.run([sys.executable, "-m", "onlinecal", "simulate", "--out", str(tmp_path / "e.csv"),
+                        "--declination", "200"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "declination" in r.stderr

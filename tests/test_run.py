@@ -319,3 +319,28 @@ def test_set_params_protocol_edge_cases(paper) -> None:
     assert not rep["NOT_ON_VEHICLE"]["ok"] and rep["NOT_ON_VEHICLE"]["tries"] == 3
     assert "no PARAM_VALUE" in rep["NOT_ON_VEHICLE"]["why"] and "NOT_ON_VEHICLE" not in table
     assert not rep["N" * 17]["ok"] and rep["N" * 17]["tries"] == 0
+
+
+def test_live_run_with_latitude_records_it(paper, tmp_path) -> None:
+    """``run --latitude``/``--declination`` over a real UDP link on 127.0.0.1 reach the filter: the result's
+    observability records them (session 12, onlinecal.ukf.earth), and the report line says so."""
+    port = free_port()
+    data = paper.data.slice_imu(0, 3000)  # the gyro-bias rest and the first static positions
+    out = tmp_path / "lat.json"
+    duration = float(data.t_imu[-1] - data.t_imu[0]) - 0.005
+    run = Run(tmp_path, "lat", "--connect", f"udpin:127.0.0.1:{port}", "--init", str(paper.init), "--json", str(out),
+              "--duration", f"{duration}", "--latitude", "-33.9", "--declination", "12.5")
+    snd = None
+    try:
+        run.wait_for("link open")
+        snd = sending(data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE)
+        rc = run.wait()
+    finally:
+        run.kill()
+        if snd is not None:
+            snd.finish()
+    assert rc in (0, 4, 5), run.err.read_text()
+    e = json.loads(out.read_text())["meta"]["online"]["observability"]["earth_rate"]
+    assert e["latitude_deg"] == pytest.approx(-33.9) and e["declination_deg"] == pytest.approx(12.5)
+    assert e["declination_sigma_deg"] == pytest.approx(1.0) and e["heading_known"] is True
+    assert "the Earth's rotation is taken out of the gyro at latitude -33.9°" in run.out.read_text()

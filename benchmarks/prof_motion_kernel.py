@@ -33,6 +33,7 @@ from onlinecal.ukf.fastpath import (  # noqa: E402
     _model_pair_shared,
     block_q_kernel,
     fold_kernel,
+    motion_measurement_kernel,
 )
 from onlinecal.ukf.kernels_propagate import propagate_kernel, rot_log_rel_kernel  # noqa: E402
 from onlinecal.ukf.kernels_update import (  # noqa: E402
@@ -128,40 +129,9 @@ def stages(rep: int, reps: int, x: Any, P: Any, scale: float, order: Any, R_nom:
         chk += dev + om[0] + R0[0, 0]
     for _ in range(reps if rep == 8 else 1):  # stage 8
         nb = int(use_acc) + int(has_mag)
-        z = np.empty(3 * nb)
-        Z = np.empty((S, 3 * nb))
-        rr = np.empty(3 * nb)
-        gated = np.ones(nb, np.bool_)
-        droppable = np.zeros(nb, np.bool_)
-        gk = np.empty(nb)
-        kb = 0
-        if use_acc:
-            for s in range(S):
-                for i in range(3):
-                    Z[s, i] = (sens_Minv[s, i, 0] * (gravity * f_body[s, 0])
-                               + sens_Minv[s, i, 1] * (gravity * f_body[s, 1])
-                               + sens_Minv[s, i, 2] * (gravity * f_body[s, 2])) + sens_o[s, i]
-                    if hold_acc >= 0:
-                        Z[s, i] = Z[s, i] + X[s, hold_acc + i]
-            for i in range(3):
-                z[i] = a_mean[i]
-                rr[i] = var_a
-            droppable[0] = True
-            gk[0] = gates[0]
-            kb = 1
-        if has_mag:
-            c = 3 * kb
-            for s in range(S):
-                t = S + s
-                for i in range(3):
-                    Z[s, c + i] = (sens_Minv[t, i, 0] * h_body[s, 0] + sens_Minv[t, i, 1] * h_body[s, 1]
-                                   + sens_Minv[t, i, 2] * h_body[s, 2]) + sens_o[t, i]
-                    if hold_mag >= 0:
-                        Z[s, c + i] = Z[s, c + i] + X[s, hold_mag + i]
-            for i in range(3):
-                z[c + i] = z_mag[i]
-                rr[c + i] = var_mag
-            gk[kb] = gates[1]
+        z, Z, rr, gated, droppable, gk = motion_measurement_kernel(X, f_body, h_body, sens_o, sens_Minv, a_mean,
+                                                                   use_acc, var_a, z_mag, has_mag, var_mag, hold_acc,
+                                                                   hold_mag, gravity, gates)
         chk += Z[1, 1]
     for _ in range(reps if rep == 9 else 1):  # stage 9
         z_pred, S_zz, hph, Pxz, nu, nis = innovation_kernel(Y, Z, z, Wm, Wc, rr, gated)

@@ -295,25 +295,16 @@ def predict_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_
 
 
 @_njit
-def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_body: Array, sens_o: Array,
-                       sens_Minv: Array, z_acc: Array, use_acc: bool, var_a: float, z_mag: Array, use_mag: bool,
-                       var_mag: float, hold_acc: int, hold_mag: int, gravity: float, Wm: Array, Wc: Array, gates: Array,
-                       consider: NDArray[np.bool_], damp: float, R_nom: Array, yaw_var: float
-                       ) -> tuple[Array, Array, Array, NDArray[np.int64], bool, Array, bool]:
-    """Measurements, update and fold of one motion block, one call.
-
-    The measurements of :func:`.measurements.motion_measurements` for the propagated sigma points X (S, n)
-    (accel: raw = M⁻¹ g f_body + o, R = var_a per axis, droppable; mag: raw = M⁻¹ h_body + o, R = var_mag;
-    each plus the held reading's offset X[:, hold:hold + 3] where hold_acc / hold_mag ≥ 0; gated by ``gates``
-    (accel, mag)), the joint
-    update (:func:`.kernels_update.update_kernel`), then the posterior folded (:func:`.attitude_init.fold_attitude`:
-    P symmetrised, R = R_nom exp([δθ]_x), δθ = 0; with yaw_var ≥ 0 the heading's variance set to it,
-    :func:`.attitude_init.set_yaw_variance`).
-
-    Returns (x (n,), P (n, n) folded, NIS (blocks,), status (blocks,) as update_kernel, whether the solve
-    succeeded, R (3, 3), whether x and P are finite with a positive diagonal).
-    """
-    S = Y.shape[0]
+def motion_measurement_kernel(X: Array, f_body: Array, h_body: Array, sens_o: Array, sens_Minv: Array, z_acc: Array,
+                              use_acc: bool, var_a: float, z_mag: Array, use_mag: bool, var_mag: float,
+                              hold_acc: int, hold_mag: int, gravity: float, gates: Array
+                              ) -> tuple[Array, Array, Array, NDArray[np.bool_], NDArray[np.bool_], Array]:
+    """The stacked measurement of a motion block (:func:`.measurements.motion_measurements`) for the propagated
+    sigma points X (S, n): accel raw = M⁻¹ g f_body + o (R = var_a per axis, droppable, gate gates[0]) where
+    use_acc, then mag raw = M⁻¹ h_body + o (R = var_mag, gate gates[1]) where use_mag, each plus the held
+    reading's offset X[:, hold:hold + 3] where hold_acc / hold_mag ≥ 0; sens_o (2S, 3), sens_Minv (2S, 3, 3)
+    the accel's rows then the mag's. Returns z (m,), Z (S, m), r (m,), gated, droppable, gates (blocks,)."""
+    S = X.shape[0]
     nb = int(use_acc) + int(use_mag)
     z = np.empty(3 * nb)
     Z = np.empty((S, 3 * nb))
@@ -348,6 +339,31 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
             z[c + i] = z_mag[i]
             r[c + i] = var_mag
         gk[k] = gates[1]
+    return z, Z, r, gated, droppable, gk
+
+
+@_njit
+def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body: Array, h_body: Array, sens_o: Array,
+                       sens_Minv: Array, z_acc: Array, use_acc: bool, var_a: float, z_mag: Array, use_mag: bool,
+                       var_mag: float, hold_acc: int, hold_mag: int, gravity: float, Wm: Array, Wc: Array, gates: Array,
+                       consider: NDArray[np.bool_], damp: float, R_nom: Array, yaw_var: float
+                       ) -> tuple[Array, Array, Array, NDArray[np.int64], bool, Array, bool]:
+    """Measurements, update and fold of one motion block, one call.
+
+    The measurements of :func:`.measurements.motion_measurements` for the propagated sigma points X (S, n)
+    (accel: raw = M⁻¹ g f_body + o, R = var_a per axis, droppable; mag: raw = M⁻¹ h_body + o, R = var_mag;
+    each plus the held reading's offset X[:, hold:hold + 3] where hold_acc / hold_mag ≥ 0; gated by ``gates``
+    (accel, mag)), the joint
+    update (:func:`.kernels_update.update_kernel`), then the posterior folded (:func:`.attitude_init.fold_attitude`:
+    P symmetrised, R = R_nom exp([δθ]_x), δθ = 0; with yaw_var ≥ 0 the heading's variance set to it,
+    :func:`.attitude_init.set_yaw_variance`).
+
+    Returns (x (n,), P (n, n) folded, NIS (blocks,), status (blocks,) as update_kernel, whether the solve
+    succeeded, R (3, 3), whether x and P are finite with a positive diagonal).
+    """
+    z, Z, r, gated, droppable, gk = motion_measurement_kernel(X, f_body, h_body, sens_o, sens_Minv, z_acc, use_acc,
+                                                              var_a, z_mag, use_mag, var_mag, hold_acc, hold_mag,
+                                                              gravity, gates)
     x, P, nis, status, _pz, _pP, ok = update_kernel(Y, x_pred, P_pred, z, Z, r, Wm, Wc, gated, droppable, gk,
                                                     consider, damp, bool(False))  # noqa: UP018 (see predict_kernel)
     xs, Ps, R, fine = fold_kernel(x, P, R_nom, yaw_var)

@@ -95,10 +95,9 @@ def sigma_points_kernel(x: Array, P: Array, scale: float, perm: NDArray[np.intp]
 
 
 @_njit
-def unscented_kernel(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, Array, Array]:
-    """Predicted mean x_pred = Σ Wm_s X_s (n,), deviations Y = X − x_pred (S, n) and covariance
-    P_pred = Σ Wc_s Y_sᵀ Y_s + diag(q) (n, n) (the unscented transform; q the process noise variances).
-    The covariance is one BLAS product (YᵀW)Y, as in the reference."""
+def _mean_deviation(X: Array, Wm: Array) -> tuple[Array, Array]:
+    """The sigma points' weighted mean x = Σ Wm_s X_s (n,), summed over s in ascending order, and their
+    deviations Y = X − x (S, n): the first half of both unscented transforms below."""
     S, n = X.shape
     x_pred = np.zeros(n)
     for s in range(S):
@@ -106,12 +105,23 @@ def unscented_kernel(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, A
         for j in range(n):
             x_pred[j] += w * X[s, j]
     Y = np.empty((S, n))
+    for s in range(S):
+        for j in range(n):
+            Y[s, j] = X[s, j] - x_pred[j]
+    return x_pred, Y
+
+
+@_njit
+def unscented_kernel(X: Array, Wm: Array, Wc: Array, q: Array) -> tuple[Array, Array, Array]:
+    """Predicted mean x_pred = Σ Wm_s X_s (n,), deviations Y = X − x_pred (S, n) and covariance
+    P_pred = Σ Wc_s Y_sᵀ Y_s + diag(q) (n, n) (the unscented transform; q the process noise variances).
+    The covariance is one BLAS product (YᵀW)Y, as in the reference."""
+    S, n = X.shape
+    x_pred, Y = _mean_deviation(X, Wm)
     YW = np.empty((n, S))
     for s in range(S):
         for j in range(n):
-            y = X[s, j] - x_pred[j]
-            Y[s, j] = y
-            YW[j, s] = y * Wc[s]
+            YW[j, s] = Y[s, j] * Wc[s]
     P = np.dot(YW, Y)
     for i in range(n):
         P[i, i] += q[i]
@@ -131,15 +141,7 @@ def unscented_motion_kernel(X: Array, Wm: Array, Wc: Array, q: Array, P: Array) 
     mean's term zero): the reference's full product recomputes P there to rounding (a difference of
     ~1e-16 · σ_i σ_j), at 40 × 40 × 81 multiply-adds of the block's 416 kflop; this forms 3 × 40 × 81."""
     S, n = X.shape
-    x_pred = np.zeros(n)
-    for s in range(S):
-        w = Wm[s]
-        for j in range(n):
-            x_pred[j] += w * X[s, j]
-    Y = np.empty((S, n))
-    for s in range(S):
-        for j in range(n):
-            Y[s, j] = X[s, j] - x_pred[j]
+    x_pred, Y = _mean_deviation(X, Wm)
     P_pred = np.empty((n, n))
     for i in range(3, n):
         for j in range(3, n):

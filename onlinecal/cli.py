@@ -19,7 +19,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -779,30 +779,25 @@ def _add_latitude(p: argparse.ArgumentParser) -> None:
                         "Model at the log's position), taken as known to 1 deg; default: unknown, 0 ± 15 deg")
 
 
-def _latitude_deg(s: str) -> float:
-    """``replay/run --latitude``: degrees within ±90."""
-    v = float(_number("a latitude in degrees (−90…90)")(s))
-    if not abs(v) <= 90.0:
-        raise argparse.ArgumentTypeError(f"must be a latitude in degrees (−90…90), not {s!r}")
-    return v
+def _degrees(what: str, limit: float, or_none: bool = False) -> Callable[[str], Any]:
+    """An argparse type: an angle in degrees within ±``limit`` (``what`` names it in the error); with
+    ``or_none`` also ``none``/``off``, returned as "none"."""
+    span = f"a {what} in degrees (−{limit:g}…{limit:g})" + (" or none" if or_none else "")
+
+    def parse(s: str) -> float | str:
+        if or_none and s.strip().lower() in ("none", "off"):
+            return "none"
+        v = float(_number(span)(s))
+        if not abs(v) <= limit:
+            raise argparse.ArgumentTypeError(f"must be {span}, not {s!r}")
+        return v
+
+    return parse
 
 
-def _declination_deg(s: str) -> float:
-    """``replay/run --declination``: degrees within ±180."""
-    v = float(_number("a declination in degrees (−180…180)")(s))
-    if not abs(v) <= 180.0:
-        raise argparse.ArgumentTypeError(f"must be a declination in degrees (−180…180), not {s!r}")
-    return v
-
-
-def _latitude(s: str) -> float | str:
-    """``simulate --latitude``: degrees within ±90, or ``none`` (no Earth rate)."""
-    if s.strip().lower() in ("none", "off"):
-        return "none"
-    v = float(_number("a latitude in degrees (−90…90) or none")(s))
-    if abs(v) > 90:
-        raise argparse.ArgumentTypeError(f"must be a latitude in degrees (−90…90) or none, not {s!r}")
-    return v
+_latitude_deg = _degrees("latitude", 90.0)  # replay/run --latitude
+_declination_deg = _degrees("declination", 180.0)  # replay/run/simulate --declination
+_latitude = _degrees("latitude", 90.0, or_none=True)  # simulate --latitude: none, no Earth rate
 
 
 def _add_scales(p: argparse.ArgumentParser) -> None:

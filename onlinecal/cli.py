@@ -185,8 +185,10 @@ def cmd_simulate(a: argparse.Namespace) -> int:
         check_combination(effects)
         lat = {} if a.latitude is None else ({"earth_rate": False} if a.latitude == "none" else
                                               {"earth_rate": True, "latitude": a.latitude})
+        if a.gps and out.suffix == ".csv":
+            raise UsageError("--gps: a CSV log has no position columns; write .bin, .tlog or .ulg")
         sim = simulate(a.profile, a.seed, a.duration, a.rate, a.mag_rate, effects=effects, **lat,
-                       declination=a.declination)
+                       declination=a.declination, gps=a.gps)
     except EffectError as e:  # the message names the spec and what is wrong with it
         raise UsageError(f"--effect: {e}") from e
     except ProfileError as e:
@@ -322,7 +324,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
     _check_out(a.json, "--json")
     _check_out(a.trace, "--trace", dash=False)
     _check_out(a.report, "--report", directory=True)
-    _ukf_config(a)  # --declination without --latitude is refused before the logs are read
+    _ukf_config(a)  # the logs' GPS read, --declination without a latitude refused, before the logs are read
     report = _report_dir(a.report) if a.report else None
     if report is None:
         # helper io: constant memory in the logs' length; the batch start on the logs' reduced stretches
@@ -422,16 +424,38 @@ def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs
 
 
 def _ukf_config(a: argparse.Namespace) -> Any:
-    """The filter's configuration from the command line (``--latitude``), or None for the defaults."""
-    if getattr(a, "declination", None) is not None and getattr(a, "latitude", None) is None:
-        raise UsageError("--declination needs --latitude (it places the Earth's rotation, which needs the latitude)")
-    if getattr(a, "latitude", None) is None:
-        return None
-    from .ukf import UKFConfig
+    """The filter's configuration from the command line, or None for the defaults: ``--latitude DEG``, else
+    (replay) the logs' GPS (onlinecal.io.position; ``--latitude none`` turns that off), with ``--declination``.
+    Decided once per command (the GPS scan is read once, its line printed once)."""
+    cached = getattr(a, "_ukf_config_made", None)
+    if cached is not None:
+        return cached[0]
+    lat, decl = getattr(a, "latitude", None), getattr(a, "declination", None)
+    source: str | None = "--latitude"
+    if lat == "none":
+        if decl is not None:
+            raise UsageError("--declination places the Earth's rotation, which --latitude none turns off")
+        lat = None
+    elif lat is None and getattr(a, "logs", None):
+        from .io.position import logs_latitude
 
-    if a.declination is None:
-        return UKFConfig(latitude_deg=a.latitude)
-    return UKFConfig(latitude_deg=a.latitude, declination_deg=a.declination, declination_sigma_deg=1.0)
+        lat, source, notes = logs_latitude(list(a.logs))
+        _warn(notes)
+        if lat is not None:
+            print(f"onlinecal: latitude {lat:.4f}° from {source}: the Earth's rotation is taken out of the gyro "
+                  "(--latitude none: not)", file=sys.stderr)
+    if lat is None:
+        if decl is not None:
+            raise UsageError("--declination needs --latitude (it places the Earth's rotation, which needs the "
+                             "latitude), or a log with a GPS fix")
+        config = None
+    else:
+        from .ukf import UKFConfig
+
+        extra = {} if decl is None else {"declination_deg": decl, "declination_sigma_deg": 1.0}
+        config = UKFConfig(latitude_deg=float(lat), latitude_source=source, **extra)
+    a._ukf_config_made = (config,)
+    return config
 
 
 def _replay_fleet(a: argparse.Namespace) -> int:
@@ -451,9 +475,9 @@ def _replay_fleet(a: argparse.Namespace) -> int:
                          "replayed on its own and reported as one JSON line (--json OUT)")
     if a.scheduler and a.executor != "dask":
         raise UsageError("--scheduler is the address of a dask scheduler: use it with --executor dask")
-    if a.latitude is not None or a.declination is not None:
-        raise UsageError("--latitude and --declination belong to a single replay or run (the logs of a fleet are "
-                         "anywhere); replay each log with its own --latitude")
+    if (a.latitude is not None and a.latitude != "none") or a.declination is not None:
+        raise UsageError("--latitude DEG and --declination belong to a single replay or run (the logs of a fleet "
+                         "are anywhere: each is told its own GPS fix's latitude; --latitude none turns that off)")
     init: Any = a.init if a.init in ("batch", "none") else _load_cal(a.init).to_dict()
     _check_out(a.json, "--json")
     jobs = a.jobs if a.jobs is not None else 1
@@ -471,7 +495,7 @@ def _replay_fleet(a: argparse.Namespace) -> int:
     try:
         with bar(len(a.logs), desc=f"replay ×{jobs} {a.executor}", unit="logs") as pb:
             recs = run_fleet(a.logs, init, jobs, a.executor, a.scheduler, _scales(a), on_record=on_record,
-                             on_progress=lambda n, note: pb.set(n, note))
+                             on_progress=lambda n, note: pb.set(n, note), gps=a.latitude != "none")
     except DaskMissing as e:
         raise Unavailable(str(e)) from e
     except SchedulerUnreachable as e:
@@ -769,13 +793,16 @@ def _positive_int(s: str) -> int:
     return int(_POS_INT(s))
 
 
-def _add_latitude(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--latitude", type=_latitude_deg, default=None, metavar="DEG",
+def _add_latitude(p: argparse.ArgumentParser, from_logs: bool) -> None:
+    default = ("default: the logs' GPS where they have a 3-D fix, else not known (the gyro bias keeps an "
+               "allowance for it); none: not taken out even where a log has GPS" if from_logs else
+               "default: not known, the gyro bias keeps an allowance for it")
+    p.add_argument("--latitude", type=_latitude, default=None, metavar="DEG|none",
                    help="where the vehicle is (degrees, north positive): the Earth's rotation is taken out of "
-                        "the gyro (its vertical part at once, the horizontal once a magnetometer holds the "
-                        "heading); default: not known, the gyro bias keeps an allowance for it")
+                        f"the gyro (its vertical part at once, the horizontal once a magnetometer holds the "
+                        f"heading); {default}")
     p.add_argument("--declination", type=_declination_deg, default=None, metavar="DEG",
-                   help="with --latitude: the magnetic declination, east positive (e.g. from the World Magnetic "
+                   help="with a latitude: the magnetic declination, east positive (e.g. from the World Magnetic "
                         "Model at the log's position), taken as known to 1 deg; default: unknown, 0 ± 15 deg")
 
 
@@ -795,9 +822,8 @@ def _degrees(what: str, limit: float, or_none: bool = False) -> Callable[[str], 
     return parse
 
 
-_latitude_deg = _degrees("latitude", 90.0)  # replay/run --latitude
 _declination_deg = _degrees("declination", 180.0)  # replay/run/simulate --declination
-_latitude = _degrees("latitude", 90.0, or_none=True)  # simulate --latitude: none, no Earth rate
+_latitude = _degrees("latitude", 90.0, or_none=True)  # --latitude: none, no Earth rate (simulate), not taken out
 
 
 def _add_scales(p: argparse.ArgumentParser) -> None:
@@ -898,6 +924,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--declination", type=_declination_deg, default=0.0, metavar="DEG",
                    help="the field's horizontal part DEG east of true north (the Earth's rotation stays on true "
                         "north; default 0)")
+    p.add_argument("--gps", action="store_true",
+                   help="log the vehicle's GPS position (5 Hz, a 3-D fix; .bin/.tlog/.ulg): a replay then takes the "
+                        "Earth's rotation out at its latitude. Needs a gyro that senses it (a vehicle profile, or "
+                        "--latitude DEG)")
     p.set_defaults(fn=cmd_simulate)
 
     p = command("batch", "the paper's offline pipeline over logs of one sensor unit")
@@ -924,7 +954,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fleet mode on local processes or on dask.distributed (extra onlinecal[dask])")
     p.add_argument("--scheduler", default=None, metavar="ADDR",
                    help="dask scheduler address (default: a LocalCluster of --jobs workers)")
-    _add_latitude(p)
+    _add_latitude(p, from_logs=True)
     _add_scales(p)
     p.set_defaults(fn=cmd_replay)
 
@@ -951,7 +981,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="RAW_IMU rate asked of the vehicle (SET_MESSAGE_INTERVAL; 0: ask nothing; default 100)")
     p.add_argument("--apply", choices=["ardupilot", "px4"], default=None,
                    help="afterwards, set the calibration as vehicle parameters (PARAM_SET, each confirmed)")
-    _add_latitude(p)
+    _add_latitude(p, from_logs=False)
     _add_scales(p)
     p.set_defaults(fn=cmd_run)
 

@@ -87,10 +87,12 @@ def _json_safe(x: Any) -> Any:
 
 
 def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: dict[str, float | None] | None = None,
-                g: float = 9.80665) -> dict[str, Any]:
+                g: float = 9.80665, gps: bool = True) -> dict[str, Any]:
     """One fleet unit: read ``path``, initialise (``"batch"``: the paper's pipeline on this log alone;
     ``None``/``"none"``: cold start; a dict: that calibration JSON), replay the UKF, and return the
     ``onlinecal.fleet/1`` record. Never raises for a bad log: the record then has ``ok: false`` and ``error``.
+    ``gps``: the Earth's rotation is taken out at the latitude of the log's own GPS fix where it has one
+    (:func:`onlinecal.io.position.log_position`; the calibration's observability says so).
     """
     from .batch import run_batch
     from .batch.ellipsoid import FitError
@@ -122,7 +124,15 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
             cal0 = Calibration.from_dict(init)
         else:
             raise ValueError(f"init must be 'batch', 'none' or a calibration dict, not {init!r}")
-        res = replay_chunked([d], cal0)
+        config = None
+        if gps:
+            from .io.position import log_position
+            from .ukf import UKFConfig
+
+            pos = log_position(path)
+            if pos is not None:
+                config = UKFConfig(latitude_deg=pos.latitude_deg, latitude_source=pos.describe(path))
+        res = replay_chunked([d], cal0, config=config)
         warnings += list(getattr(res, "warnings", []))
         from .health import assess
 
@@ -155,7 +165,7 @@ def run_fleet(paths: Sequence[str], init: str | dict[str, Any] | None = "batch",
               executor: str = "process", scheduler: str | None = None,
               scales: dict[str, float | None] | None = None, g: float = 9.80665,
               on_record: Callable[[dict[str, Any]], None] | None = None,
-              on_progress: Callable[[float, str], None] | None = None) -> list[dict[str, Any]]:
+              on_progress: Callable[[float, str], None] | None = None, gps: bool = True) -> list[dict[str, Any]]:
     """Run :func:`process_log` over ``paths``; returns the records in the order of ``paths``.
 
     ``executor="process"``: a pool of ``jobs`` spawned worker processes (also for ``jobs == 1``), each with
@@ -166,7 +176,8 @@ def run_fleet(paths: Sequence[str], init: str | dict[str, Any] | None = "batch",
     ``executor="dask"``: a ``dask.distributed.Client`` on ``scheduler`` (an address such as
     ``tcp://10.0.0.5:8786``; the logs must be readable at the same path on the workers), or, without one, a
     ``LocalCluster`` of ``jobs`` single-threaded worker processes. ``on_record`` is called with each record
-    as it completes (completion order); ``on_progress(logs_done, note)`` drives a progress bar.
+    as it completes (completion order); ``on_progress(logs_done, note)`` drives a progress bar. ``gps``: each
+    log's filter told the latitude of that log's GPS fix (see :func:`process_log`).
     """
     paths = [str(p) for p in paths]
     work = [str(Path(p).absolute()) for p in paths]  # workers may run elsewhere (dask); records keep the name given
@@ -183,9 +194,9 @@ def run_fleet(paths: Sequence[str], init: str | dict[str, Any] | None = "batch",
     if executor == "process":
         if jobs < 1:
             raise ValueError("jobs must be ≥ 1")
-        _run_pool(work, init, jobs, scales, g, done)
+        _run_pool(work, init, jobs, scales, g, done, gps)
     elif executor == "dask":
-        _run_dask(work, init, jobs, scheduler, scales, g, done)
+        _run_dask(work, init, jobs, scheduler, scales, g, done, gps=gps)
     else:
         raise ValueError(f"executor must be 'process' or 'dask', not {executor!r}")
     return [out[i] for i in range(len(paths))]
@@ -195,7 +206,7 @@ _BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _run_pool(paths: list[str], init: Any, jobs: int, scales: Any, g: float,
-              done: Callable[[int, dict[str, Any]], None]) -> None:
+              done: Callable[[int, dict[str, Any]], None], gps: bool = True) -> None:
     import multiprocessing as mp
     import os
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -207,7 +218,7 @@ def _run_pool(paths: list[str], init: Any, jobs: int, scales: Any, g: float,
     os.environ.update({k: "1" for k in _BLAS_ENV})
     try:
         with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-            futs = {pool.submit(process_log, p, init, scales, g): i for i, p in enumerate(paths)}
+            futs = {pool.submit(process_log, p, init, scales, g, gps): i for i, p in enumerate(paths)}
             try:
                 for f in as_completed(futs):
                     i = futs[f]
@@ -239,7 +250,7 @@ def require_dask() -> None:
 
 
 def _run_dask(paths: list[str], init: Any, jobs: int, scheduler: str | None, scales: Any, g: float,
-              done: Callable[[int, dict[str, Any]], None], connect_timeout_s: float = 20.0) -> None:
+              done: Callable[[int, dict[str, Any]], None], connect_timeout_s: float = 20.0, gps: bool = True) -> None:
     require_dask()
     from dask.distributed import Client, LocalCluster, as_completed
 
@@ -254,7 +265,7 @@ def _run_dask(paths: list[str], init: Any, jobs: int, scheduler: str | None, sca
                                dashboard_address=None)
         client = Client(cluster)
     try:
-        futs = client.map(process_log, paths, init=init, scales=scales, g=g, pure=False)
+        futs = client.map(process_log, paths, init=init, scales=scales, g=g, gps=gps, pure=False)
         index = {f.key: i for i, f in enumerate(futs)}
         for f in as_completed(futs):
             i = index[f.key]

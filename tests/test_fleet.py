@@ -206,7 +206,7 @@ def test_a_result_that_failed_its_health_is_not_ok(tmp_path, monkeypatch):
                         mag=SensorCalibration.from_params(bias=(-27.4, 15.6, 56.5), scale=(2.0, 2.1, 1e-6)),
                         source="online")
     fake = SimpleNamespace(calibration=wreck, nis={}, events=[], observability={}, warnings=[])
-    monkeypatch.setattr(fleet, "replay_chunked", lambda logs, init: fake)
+    monkeypatch.setattr(fleet, "replay_chunked", lambda logs, init, config=None: fake)
     rec = process_log(str(log), init="none")
     assert rec["ok"] is False and rec["error"] is None and rec["health"]["verdict"] == "failed"
     assert rec["calibration"]["health"]["verdict"] == "failed"

@@ -188,6 +188,21 @@ def split_boundaries(data: ImuData) -> list[tuple[bool, ImuData]]:
     return out
 
 
+def gps_series(data: ImuData) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(t s, latitude deg, longitude deg) of ``data.series`` "latitude"/"longitude" for a writer, or None when
+    the data has no position. Raises ValueError where they are not one time line of finite values."""
+    if "latitude" not in data.series or "longitude" not in data.series:
+        return None
+    (t, lat), (t2, lon) = ((np.asarray(a, np.float64), np.asarray(b, np.float64))
+                           for a, b in (data.series["latitude"], data.series["longitude"]))
+    if t.shape != t2.shape or not np.array_equal(t, t2):
+        raise ValueError("the latitude and longitude series must share their times")
+    if t.size and (not np.all(np.isfinite(t)) or t.min() < 0 or np.abs(lat).max() > 90 or np.abs(lon).max() > 180):
+        raise ValueError("a GPS position needs finite, non-negative times and a latitude within ±90°, "
+                         "a longitude within ±180°")
+    return (t, lat, lon) if t.size else None
+
+
 class LogReader(Protocol):
     """What every format's reader offers: stream a log in blocks of bounded size.
 

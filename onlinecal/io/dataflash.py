@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.base import ImuData, LogError, gps_series
 from onlinecal.io.dfparse import DataflashParser, Records
 from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
@@ -46,11 +46,14 @@ FMT_FORMAT = ("FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
 IMU_FORMAT = ("IMU", "QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz")
 MAG_FORMAT = ("MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S")
 # the series a vehicle's log carries (ImuData.series "current" A, "throttle" 0..1), fields as ArduPilot names them
-BAT_ID, CTUN_ID = 102, 103
+BAT_ID, CTUN_ID, GPS_ID = 102, 103, 104
 BAT_FORMAT = ("BAT", "QBfffff", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot")
 CTUN_FORMAT = ("CTUN", "Qfff", "TimeUS,ThI,ThO,ThH")
+# the position (ImuData.series "latitude"/"longitude", deg; read back by onlinecal.io.position), ArduPilot 4.x's GPS
+GPS_FORMAT = ("GPS", "QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U")
+# DataFlash format characters (the writer's; dfparse.FORMAT_CHARS is the reader's)
 _NP = {"Q": "<u8", "q": "<i8", "B": "u1", "b": "i1", "M": "u1", "f": "<f4", "d": "<f8", "I": "<u4", "i": "<i4",
-       "H": "<u2", "h": "<i2", "n": "S4", "N": "S16", "Z": "S64"}  # DataFlash format characters
+       "H": "<u2", "h": "<i2", "n": "S4", "N": "S16", "Z": "S64", "c": "<i2", "L": "<i4", "e": "<i4"}
 _IMU_FIELDS = ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ")
 _OLD_NAMES = {"IMU2": ("IMU", 1), "IMU3": ("IMU", 2), "MAG2": ("MAG", 1), "MAG3": ("MAG", 2)}
 _READ = ["IMU", "IMU2", "IMU3", "MAG", "MAG2", "MAG3", "PARM", "BAT", "CURR", "CTUN", "RCOU", "ARM", "EV"]
@@ -326,7 +329,8 @@ def write_dataflash(path: str | Path, data: ImuData) -> None:
     """Write ``data`` as a minimal ArduPilot DataFlash log: FMT records for FMT, IMU and MAG, then IMU
     (instance 0; gyro rad/s, acc m/s², T °C as float32) and MAG (instance 0; int16 milligauss, rounded
     and clipped) records merged in time order. TimeUS = round(t µs); times must be ≥ 0. ``data.series``
-    ``current`` (A) and ``throttle`` (0..1), where present, are written as BAT (Inst 0, Curr) and CTUN (ThO)."""
+    ``current`` (A) and ``throttle`` (0..1), where present, are written as BAT (Inst 0, Curr) and CTUN (ThO);
+    ``latitude``/``longitude`` (deg, one time line) as GPS instance 0 with a 3-D fix (Status 3)."""
     for t in (data.t_imu, data.t_mag):
         if t.size and (not np.all(np.isfinite(t)) or t.min() < 0):
             raise ValueError("write_dataflash needs finite, non-negative times")
@@ -362,6 +366,16 @@ def write_dataflash(path: str | Path, data: ImuData) -> None:
             rec["TimeUS"] = np.rint(ts * 1e6).astype(np.uint64)
             rec[col] = xs
             kinds.append((mid, fmt, rec))
+    gps = gps_series(data)
+    if gps is not None:
+        ts, lat, lon = gps
+        rec = np.zeros(ts.size, _record_dtype(GPS_FORMAT[1], GPS_FORMAT[2]))
+        rec["h1"], rec["h2"], rec["id"] = HEAD[0], HEAD[1], GPS_ID
+        rec["TimeUS"] = np.rint(ts * 1e6).astype(np.uint64)
+        rec["Status"], rec["NSats"], rec["HDop"], rec["U"] = 3, 12, 80, 1  # a 3-D fix (HDop c: 0.8)
+        rec["Lat"] = np.rint(lat * 1e7).astype(np.int32)  # format L: 1e-7 deg
+        rec["Lng"] = np.rint(lon * 1e7).astype(np.int32)
+        kinds.append((GPS_ID, GPS_FORMAT, rec))
     # Merge by time (IMU first on ties, then MAG, then the series): scatter the record arrays into one buffer.
     t = np.concatenate([r["TimeUS"] for _, _, r in kinds])
     sizes = np.concatenate([np.full(r.size, r.dtype.itemsize) for _, _, r in kinds])

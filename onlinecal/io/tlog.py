@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.base import ImuData, LogError, gps_series
 from onlinecal.io.mavlink import ACC_UNIT, GYRO_UNIT, IMU_MESSAGES, MAG_UNIT, SCALED_INSTANCE, mavutil_v2
 from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
@@ -291,7 +291,8 @@ def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
     temperature c°C (NaN → 0 "not provided", 0 °C → 1 as the spec asks), mag mgauss = the latest mag
     sample at or before that time (sample-and-hold; zeros before the first). Values are rounded and
     clipped to int16. ``data.series`` ``current`` (A) and ``throttle`` (0..1), where present, are written as
-    SYS_STATUS current_battery (cA) and VFR_HUD throttle (%) at their own times. Each packet is prefixed by
+    SYS_STATUS current_battery (cA) and VFR_HUD throttle (%) at their own times, ``latitude``/``longitude``
+    (deg) as GPS_RAW_INT with a 3-D fix. Each packet is prefixed by
     the 8-byte big-endian µs timestamp of tlogs (``_TLOG_EPOCH_US`` + time_usec, so files are reproducible).
     """
     from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -331,6 +332,12 @@ def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
                 status.append((us_s, mav.sys_status_encode(0, 0, 0, 0, 0, int(np.clip(round(x * 100), -1, 32767)),
                                                            -1, 0, 0, 0, 0, 0, 0) if key == "current"
                                else mav.vfr_hud_encode(0, 0, 0, int(np.clip(round(x * 100), 0, 65535)), 0, 0)))
+    gps = gps_series(data)
+    if gps is not None:  # GPS_RAW_INT with a 3-D fix (read back by onlinecal.io.position)
+        for us_s, la, lo in zip(np.rint(gps[0] * 1e6).astype(np.int64).tolist(),
+                                np.rint(gps[1] * 1e7).astype(np.int64).tolist(),
+                                np.rint(gps[2] * 1e7).astype(np.int64).tolist(), strict=True):
+            status.append((us_s, mav.gps_raw_int_encode(us_s, 3, la, lo, 0, 80, 120, 0, 0, 12)))
     status.sort(key=lambda e: e[0])
     js = 0
     next_hb = None

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from onlinecal.io.base import ImuData
+from onlinecal.io.base import ImuData, gps_series
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 ULOG_VERSION = 1
@@ -63,6 +63,11 @@ SERIES_TOPICS: dict[str, list[tuple[str, str, str]]] = {
                             ("float[8]", "8<f4", "control")],
 }
 SERIES_OF = {"battery_status": "current", "actuator_controls_0": "throttle"}
+# the position (ImuData.series "latitude"/"longitude", deg): vehicle_gps_position's first fields as PX4 before
+# v1.14 logged them (lat/lon int32 1e-7 deg, fix_type 3 = a 3-D fix)
+GPS_TOPIC = [("uint64_t", "<u8", "timestamp"), ("int32_t", "<i4", "lat"), ("int32_t", "<i4", "lon"),
+             ("int32_t", "<i4", "alt"), ("uint8_t", "u1", "fix_type")]
+SERIES_TOPICS["vehicle_gps_position"] = GPS_TOPIC
 _MSG_ID = {name: i for i, name in enumerate(list(TOPICS) + list(SERIES_TOPICS))}
 
 
@@ -116,8 +121,10 @@ def _records(name: str, usec: NDArray[np.int64], xyz: NDArray[np.float64],
     return rec.view(np.uint8).reshape(usec.size, dt.itemsize)
 
 
-def _series_records(name: str, usec: NDArray[np.int64], x: NDArray[np.float64]) -> NDArray[np.uint8]:
-    """(K, 3 + record size) bytes of a series topic: current_a, or control[3] (the throttle)."""
+def _series_records(name: str, usec: NDArray[np.int64], x: NDArray[np.float64],
+                    lon: NDArray[np.float64] | None = None) -> NDArray[np.uint8]:
+    """(K, 3 + record size) bytes of a series topic: current_a, control[3] (the throttle), or a GPS fix
+    (``x`` the latitude, ``lon`` the longitude, deg)."""
     fields = SERIES_TOPICS[name]
     dt = np.dtype([("msg_size", "<u2"), ("msg_type", "u1"), ("msg_id", "<u2")] + [(fn, nt) for _, nt, fn in fields])
     rec = np.zeros(usec.size, dt)
@@ -125,7 +132,11 @@ def _series_records(name: str, usec: NDArray[np.int64], x: NDArray[np.float64]) 
     rec["msg_type"] = ord("D")
     rec["msg_id"] = _MSG_ID[name]
     rec["timestamp"] = usec
-    if name == "battery_status":
+    if name == "vehicle_gps_position":
+        rec["lat"] = np.rint(x * 1e7).astype(np.int32)
+        rec["lon"] = np.rint(np.asarray(lon) * 1e7).astype(np.int32)
+        rec["fix_type"] = 3
+    elif name == "battery_status":
         rec["current_a"] = x
     else:
         rec["timestamp_sample"] = usec
@@ -143,7 +154,8 @@ def _usec(t: NDArray[np.float64], what: str) -> NDArray[np.int64]:
 def write_ulog(path: str | Path, data: ImuData, sys_name: str = "onlinecal simulate") -> None:
     """Write ``data`` as a PX4 ULog of the raw topics sensor_accel, sensor_gyro (one sample per IMU sample,
     same stamps) and sensor_mag (its own clock), with the calibration parameters (module docstring); a
-    ``current``/``throttle`` series as battery_status.current_a / actuator_controls_0.control[3].
+    ``current``/``throttle`` series as battery_status.current_a / actuator_controls_0.control[3], a
+    ``latitude``/``longitude`` series (deg) as vehicle_gps_position with a 3-D fix.
 
     Shapes/units: t_imu (N,) s ≥ 0 → µs (rounded); gyro (N, 3) rad/s, acc (N, 3) m/s², mag (M, 3) gauss → float32;
     temp (N,) °C (NaN stays NaN: PX4's "unknown"). The 'D' messages of all topics are merged in time order
@@ -162,6 +174,12 @@ def write_ulog(path: str | Path, data: ImuData, sys_name: str = "onlinecal simul
         us = _usec(np.asarray(ts, np.float64), SERIES_OF[name])
         parts.append(_series_records(name, us, np.asarray(xs, np.float64)))
         stamps.append(us)
+    gps = gps_series(data)
+    if gps is not None:
+        us = _usec(gps[0], "GPS")
+        parts.append(_series_records("vehicle_gps_position", us, gps[1], gps[2]))
+        stamps.append(us)
+        series.append("vehicle_gps_position")
     topic_of = np.concatenate([np.full(s.size, k) for k, s in enumerate(stamps)])
     order = np.lexsort((topic_of, np.concatenate(stamps)))  # time, then topic: a stable merge
     sizes = np.array([p.shape[1] for p in parts])[topic_of[order]]

@@ -230,6 +230,28 @@ VEHICLES = ("multirotor", "fixedwing")
 VIBE_FIXEDWING = (1.5, 1.5, 2.5)
 
 
+GPS_RATE_HZ = 5.0  # a u-blox M8's default navigation rate (ArduPilot GPS_RATE_MS 200)
+DEFAULT_LONGITUDE_DEG = 8.545594  # PX4 SITL's default home (PX4_HOME_LON), with motion.DEFAULT_LATITUDE_DEG
+EARTH_RADIUS_M = 6_371_000.0  # mean radius: metres to degrees over a flight's few hundred metres
+
+
+def gps_series(trajectory: Any, duration: float, latitude: float, longitude: float = DEFAULT_LONGITUDE_DEG,
+               rate: float = GPS_RATE_HZ) -> dict[str, tuple[Array, Array]]:
+    """The ``latitude``/``longitude`` series (deg) a GPS receiver logs at ``rate`` Hz over [0, duration] s: the
+    home position (``latitude``, ``longitude``) moved by the vehicle's flown path (its world velocity integrated;
+    ENU, east and north), or the home position throughout for a trajectory without a velocity (a bench)."""
+    t = np.arange(0.0, duration + 1e-9, 1.0 / rate)
+    east = north = np.zeros(t.size)
+    v = getattr(trajectory, "v_world", None)
+    if v is not None:
+        pos = np.vstack([np.zeros(3), np.cumsum(v[:-1] * trajectory.dt, axis=0)])
+        k = np.clip(np.rint(t / trajectory.dt).astype(np.intp), 0, pos.shape[0] - 1)
+        east, north = pos[k, 0], pos[k, 1]
+    lat = latitude + np.degrees(north / EARTH_RADIUS_M)
+    lon = longitude + np.degrees(east / (EARTH_RADIUS_M * max(np.cos(np.radians(latitude)), 1e-6)))
+    return {"latitude": (t, lat), "longitude": (t.copy(), lon)}
+
+
 class ProfileError(ValueError):
     """An unknown profile or profile option (the message names it)."""
 
@@ -292,6 +314,7 @@ def simulate(
     latitude: float = DEFAULT_LATITUDE_DEG,
     earth_rate: bool | None = None,
     declination: float = 0.0,
+    gps: bool = False,
 ) -> Simulation:
     """Simulate a session. Returns raw data (ImuData), the truth and the trajectory.
 
@@ -302,7 +325,9 @@ def simulate(
     (healthy by default) is added to the accelerometer's specific force while armed, and its interference
     to the magnetometer's field, both before the sensor model (they are physical inputs).
     ``duration`` cuts the paper profile (or sets the flight length); ``noise`` scales every sensor's
-    noise; ``effects`` are objects with ``apply(ctx: SimContext)`` and ``describe() -> dict``
+    noise; ``gps`` adds the position a GPS receiver logs (:func:`gps_series`; it needs the Earth's rotation in the
+    gyro, a vehicle's default or ``earth_rate=True``, since a replay told the latitude takes it out); ``effects``
+    are objects with ``apply(ctx: SimContext)`` and ``describe() -> dict``
     (``onlinecal.sim.effects.parse_effect`` makes them from ``NAME:key=value`` strings).
     """
     name, opts = parse_profile(profile)
@@ -313,6 +338,9 @@ def simulate(
     w_E = earth_rate_world(latitude)  # validates the latitude whether or not it is used
     if earth_rate if earth_rate is not None else name in VEHICLES:
         traj.earth_rate = w_E  # every evaluation (time_offset and lever_arm re-evaluate) includes it
+    elif gps:
+        raise ProfileError("a GPS position with a gyro that does not sense the Earth's rotation would tell a replay "
+                           "to take out what is not there: give the latitude (earth_rate) with gps")
     T = traj.duration if duration is None else min(duration, traj.duration)
     t_imu, t_mag = sample_times(T, imu_rate, mag_rate)
     mi, mm = traj.evaluate(t_imu), traj.evaluate(t_mag)
@@ -361,6 +389,8 @@ def simulate(
     tmp = np.round((ctx.temp + rng.normal(0, 0.02, ctx.temp.shape)) * 100) / 100
     data = ImuData(ctx.t_imu, out["gyro"], out["accel"], tmp, ctx.t_mag, out["mag"], f"sim:{profile}:{seed}",
                    series=vehicle_series(traj, T))  # a vehicle's throttle and current as its log carries them
+    if gps:
+        data.series.update(gps_series(traj, T, latitude))
     tr = Truth(
         cal, profile, seed, imu_rate, mag_rate, noise=sig, segments=traj.annotations(),
         effects=[{**e.describe(), **ctx.info.get(id(e), {})} for e in effects], field_world=h_W.tolist(),

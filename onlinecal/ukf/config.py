@@ -87,6 +87,9 @@ class UKFConfig:
     # (.earth.correct_block) and the allowances above shrink to what the declination leaves (.earth.allowance);
     # None: not known, the allowance for any latitude
     latitude_deg: float | None = None
+    # where latitude_deg came from, in words ("--latitude", "latitude 47.3977° from f.bin's GPS (...)"): reported
+    # with it (observability_report's earth_rate), never used by the filter
+    latitude_source: str | None = None
     # deg, east positive: the magnetic declination D (the filter's heading is magnetic, the Earth's axis points to
     # true north), and its σ: unknown, 0 ± 15° (the World Magnetic Model's charts put most of the populated
     # mid-latitudes within ±15°); `--declination` gives it with σ 1° (the model's error away from local

@@ -305,6 +305,7 @@ class OnlineCalibrator:
         c = self.config
         known = c.latitude_deg is not None
         rep["earth_rate"] = {"latitude_deg": c.latitude_deg,
+                             "latitude_source": c.latitude_source if known else None,
                              "declination_deg": c.declination_deg if known else None,
                              "declination_sigma_deg": c.declination_sigma_deg if known else None,
                              "heading_known": not self._mag.yaw_free, "allowance_rad_s": list(self._earth[0])}

@@ -381,6 +381,8 @@ def observability_text(rep: dict[str, Any]) -> list[str]:
         else:
             part = (f"magnetic heading, declination {e.get('declination_deg') or 0.0:g}° ± "
                     f"{e['declination_sigma_deg']:g}°" if e["heading_known"] else "vertical part only: no heading")
-            lines.append(f"the Earth's rotation is taken out of the gyro at latitude {e['latitude_deg']:g}° ({part}); "
-                         f"what is left is allowed for: up to {max(e['allowance_rad_s']):.1e} rad/s per axis")
+            src = e.get("latitude_source")
+            told = f"from {src}; " if src and src != "--latitude" else ""
+            lines.append(f"the Earth's rotation is taken out of the gyro at latitude {e['latitude_deg']:g}° ({told}"
+                         f"{part}); what is left is allowed for: up to {max(e['allowance_rad_s']):.1e} rad/s per axis")
     return lines

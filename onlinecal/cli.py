@@ -425,35 +425,22 @@ def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs
 
 def _ukf_config(a: argparse.Namespace) -> Any:
     """The filter's configuration from the command line, or None for the defaults: ``--latitude DEG``, else
-    (replay) the logs' GPS (onlinecal.io.position; ``--latitude none`` turns that off), with ``--declination``.
-    Decided once per command (the GPS scan is read once, its line printed once)."""
+    (replay) the logs' GPS with the World Magnetic Model's declination there (onlinecal.place; ``--latitude
+    none`` turns that off), ``--declination``. Decided once per command (the GPS read once, its lines printed
+    once)."""
     cached = getattr(a, "_ukf_config_made", None)
     if cached is not None:
         return cached[0]
-    lat, decl = getattr(a, "latitude", None), getattr(a, "declination", None)
-    source: str | None = "--latitude"
-    if lat == "none":
-        if decl is not None:
-            raise UsageError("--declination places the Earth's rotation, which --latitude none turns off")
-        lat = None
-    elif lat is None and getattr(a, "logs", None):
-        from .io.position import logs_latitude
+    from .place import earth_rate_config
 
-        lat, source, notes = logs_latitude(list(a.logs))
-        _warn(notes)
-        if lat is not None:
-            print(f"onlinecal: latitude {lat:.4f}° from {source}: the Earth's rotation is taken out of the gyro "
-                  "(--latitude none: not)", file=sys.stderr)
-    if lat is None:
-        if decl is not None:
-            raise UsageError("--declination needs --latitude (it places the Earth's rotation, which needs the "
-                             "latitude), or a log with a GPS fix")
-        config = None
-    else:
-        from .ukf import UKFConfig
-
-        extra = {} if decl is None else {"declination_deg": decl, "declination_sigma_deg": 1.0}
-        config = UKFConfig(latitude_deg=float(lat), latitude_source=source, **extra)
+    try:
+        config, info, warnings = earth_rate_config(getattr(a, "latitude", None), getattr(a, "declination", None),
+                                                   list(getattr(a, "logs", None) or []))
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    _warn(warnings)
+    for line in info:
+        print(f"onlinecal: {line}", file=sys.stderr)
     a._ukf_config_made = (config,)
     return config
 
@@ -921,9 +908,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--latitude", type=_latitude, default=None, metavar="DEG|none",
                    help="the gyro senses the Earth's rotation at this latitude; none: not at all (default: the "
                         "profile's — multirotor and fixedwing at 47.397742°, paper and flight none)")
-    p.add_argument("--declination", type=_declination_deg, default=0.0, metavar="DEG",
+    p.add_argument("--declination", type=_declination_deg, default=None, metavar="DEG",
                    help="the field's horizontal part DEG east of true north (the Earth's rotation stays on true "
-                        "north; default 0)")
+                        "north; default 0, with --gps the World Magnetic Model's at the logged home)")
     p.add_argument("--gps", action="store_true",
                    help="log the vehicle's GPS position (5 Hz, a 3-D fix; .bin/.tlog/.ulg): a replay then takes the "
                         "Earth's rotation out at its latitude. Needs a gyro that senses it (a vehicle profile, or "

@@ -91,8 +91,9 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
     """One fleet unit: read ``path``, initialise (``"batch"``: the paper's pipeline on this log alone;
     ``None``/``"none"``: cold start; a dict: that calibration JSON), replay the UKF, and return the
     ``onlinecal.fleet/1`` record. Never raises for a bad log: the record then has ``ok: false`` and ``error``.
-    ``gps``: the Earth's rotation is taken out at the latitude of the log's own GPS fix where it has one
-    (:func:`onlinecal.io.position.log_position`; the calibration's observability says so).
+    ``gps``: the Earth's rotation is taken out at the latitude of the log's own GPS fix where it has one, with
+    the World Magnetic Model's declination there (:func:`onlinecal.place.earth_rate_config`; the calibration's
+    observability says so).
     """
     from .batch import run_batch
     from .batch.ellipsoid import FitError
@@ -126,12 +127,10 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
             raise ValueError(f"init must be 'batch', 'none' or a calibration dict, not {init!r}")
         config = None
         if gps:
-            from .io.position import log_position
-            from .ukf import UKFConfig
+            from .place import earth_rate_config
 
-            pos = log_position(path)
-            if pos is not None:
-                config = UKFConfig(latitude_deg=pos.latitude_deg, latitude_source=pos.describe(path))
+            config, _info, place_notes = earth_rate_config(None, None, [path])
+            warnings += place_notes
         res = replay_chunked([d], cal0, config=config)
         warnings += list(getattr(res, "warnings", []))
         from .health import assess

@@ -16,7 +16,7 @@ import pytest
 
 from onlinecal.io import write_log
 from onlinecal.io.base import ImuData, LogError
-from onlinecal.io.position import log_position, logs_latitude
+from onlinecal.io.position import log_position, logs_place
 from onlinecal.sim import simulate
 from onlinecal.sim.motion import DEFAULT_LATITUDE_DEG
 
@@ -132,10 +132,11 @@ def test_logs_far_apart_are_not_one_place(tmp_path: Path) -> None:
         d.series["latitude"] = (np.array([0.5, 1.0]), np.full(2, lat))
         d.series["longitude"] = (np.array([0.5, 1.0]), np.full(2, 8.0))
         write_log(tmp_path / f"{name}.tlog", d)
-    lat, src, notes = logs_latitude([str(tmp_path / "a.tlog"), str(tmp_path / "b.tlog")])
-    assert lat == pytest.approx(47.2) and "a.tlog" in (src or "") and not notes
-    lat, src, notes = logs_latitude([str(tmp_path / "a.tlog"), str(tmp_path / "c.tlog")])
-    assert lat is None and src is None and "different latitudes" in notes[0]
+    pos, src, notes = logs_place([str(tmp_path / "a.tlog"), str(tmp_path / "b.tlog")])
+    assert pos is not None and pos.latitude_deg == pytest.approx(47.2) and "a.tlog" in (src or "") and not notes
+    assert pos.year == pytest.approx(2023.87, abs=0.01)  # the writers' date (io.base.WRITE_EPOCH_US)
+    pos, src, notes = logs_place([str(tmp_path / "a.tlog"), str(tmp_path / "c.tlog")])
+    assert pos is None and src is None and "different latitudes" in notes[0]
 
 
 def test_simulated_gps_follows_the_flight() -> None:
@@ -158,31 +159,40 @@ def test_simulated_gps_follows_the_flight() -> None:
 
 
 def test_replay_takes_the_latitude_from_the_log(tmp_path: Path) -> None:
-    """``simulate --gps`` → ``replay``: the filter is told the log's latitude and says where it came from; the
-    result is the one ``--latitude`` with the same number gives, value for value; ``--latitude none`` turns it
-    off; ``--declination`` needs no ``--latitude`` when the log has a fix; a fleet uses each log's own."""
+    """``simulate --gps`` → ``replay``: the filter is told the log's latitude and the World Magnetic Model's
+    declination at the fix and says where both came from; the result is the one ``--latitude``/``--declination``
+    with the same numbers give, value for value; the simulated field's declination is the one the replay is
+    told; ``--latitude none`` turns it off; a fleet uses each log's own."""
     log = tmp_path / "f.tlog"
     r = _cli("simulate", "--out", str(log), "--profile", "multirotor", "--seed", "5", "--duration", "60", "--gps")
     assert r.returncode == 0, r.stderr
+    truth = json.loads(Path(str(log) + ".truth.json").read_text())
+    h = truth["field_world"]
+    field_decl = np.degrees(np.arctan2(h[0], h[1]))  # ENU: east over north
+    js = tmp_path / "gps.json"
+    r = _cli("replay", str(log), "--init", "none", "--json", str(js))
+    assert r.returncode in (0, 1), r.stderr
+    assert "from f.tlog's GPS" in r.stderr and "World Magnetic Model (WMM2020 at 2023.9" in r.stderr
+    gps = json.loads(js.read_text())
+    e = gps["meta"]["online"]["observability"]["earth_rate"]
+    assert e["latitude_deg"] == pytest.approx(DEFAULT_LATITUDE_DEG, abs=1e-6)
+    assert "GPS_RAW_INT" in e["latitude_source"] and "WMM2020" in e["declination_source"]
+    assert e["declination_deg"] == pytest.approx(field_decl, abs=1e-6) and e["declination_sigma_deg"] == 1.0
     out = {}
-    for name, extra in (("gps", []), ("hand", ["--latitude", repr(DEFAULT_LATITUDE_DEG)]),
-                        ("off", ["--latitude", "none"])):
+    for name, extra in (("hand", ["--latitude", repr(DEFAULT_LATITUDE_DEG), "--declination",
+                                  repr(e["declination_deg"])]), ("off", ["--latitude", "none"])):
         js = tmp_path / f"{name}.json"
         r = _cli("replay", str(log), "--init", "none", "--json", str(js), *extra)
         assert r.returncode in (0, 1), r.stderr
+        assert "GPS" not in r.stderr
         out[name] = json.loads(js.read_text())
-        assert ("from f.tlog's GPS" in r.stderr) == (name == "gps")
-    e = {k: v["meta"]["online"]["observability"]["earth_rate"] for k, v in out.items()}
-    assert e["gps"]["latitude_deg"] == pytest.approx(DEFAULT_LATITUDE_DEG, abs=1e-6)
-    assert "GPS_RAW_INT" in e["gps"]["latitude_source"] and e["hand"]["latitude_source"] == "--latitude"
-    assert e["off"]["latitude_deg"] is None and e["off"]["latitude_source"] is None
+    eh = out["hand"]["meta"]["online"]["observability"]["earth_rate"]
+    assert eh["latitude_source"] == "--latitude" and eh["declination_source"] == "--declination"
+    assert out["off"]["meta"]["online"]["observability"]["earth_rate"]["latitude_deg"] is None
     for s in ("gyro", "accel", "mag"):
-        assert np.allclose(out["gps"][s]["bias"], out["hand"][s]["bias"], rtol=0, atol=1e-12)
-    assert not np.allclose(out["gps"]["gyro"]["bias"], out["off"]["gyro"]["bias"], rtol=0, atol=1e-6)
-    r = _cli("replay", str(log), "--init", "none", "--declination", "2", "--json", str(tmp_path / "d.json"))
-    assert r.returncode in (0, 1), r.stderr
-    d = json.loads((tmp_path / "d.json").read_text())["meta"]["online"]["observability"]["earth_rate"]
-    assert d["declination_deg"] == 2.0 and d["declination_sigma_deg"] == 1.0
+        for k in ("bias", "scale"):
+            assert np.allclose(gps[s][k], out["hand"][s][k], rtol=0, atol=1e-12)
+    assert not np.allclose(gps["gyro"]["bias"], out["off"]["gyro"]["bias"], rtol=0, atol=1e-6)
     r = _cli("replay", str(log), "--init", "none", "--latitude", "none", "--declination", "2")
     assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     r = _cli("replay", str(log), "--init", "none", "--jobs", "1", "--json", str(tmp_path / "fleet.jsonl"))
@@ -190,6 +200,36 @@ def test_replay_takes_the_latitude_from_the_log(tmp_path: Path) -> None:
     rec = json.loads((tmp_path / "fleet.jsonl").read_text().splitlines()[0])
     ef = rec["calibration"]["meta"]["online"]["observability"]["earth_rate"]
     assert ef["latitude_deg"] == pytest.approx(DEFAULT_LATITUDE_DEG, abs=1e-6) and "GPS" in ef["latitude_source"]
+    assert ef["declination_deg"] == pytest.approx(field_decl, abs=1e-6)
+
+
+@pytest.mark.parametrize(("lat", "lon"), [(47.397742, 8.545594), (-33.87, 151.21), (64.15, -21.94),
+                                          (40.0, -105.0), (-54.8, -68.3)])
+def test_wmm_declination_agrees_with_the_igrf(lat: float, lon: float) -> None:
+    """The WMM's declination (pygeomag) against the IGRF's (ppigrf: another model, another implementation)
+    on the writers' date: within the WMM's own stated uncertainty, and the σ the filter is told covers it."""
+    import datetime
+
+    import ppigrf
+
+    from onlinecal.io.base import WRITE_EPOCH_US, decimal_year
+    from onlinecal.place import wmm_declination
+
+    d = wmm_declination(lat, lon, decimal_year(WRITE_EPOCH_US * 1e-6))
+    be, bn, _ = ppigrf.igrf(lon, lat, 0.0, datetime.datetime.fromtimestamp(WRITE_EPOCH_US * 1e-6, datetime.UTC)
+                            .replace(tzinfo=None))
+    igrf = float(np.degrees(np.arctan2(np.asarray(be).item(), np.asarray(bn).item())))
+    assert abs(d.deg - igrf) < d.model_sigma_deg, (d, igrf)
+    assert d.model == "WMM2020" and d.note is None and d.sigma_deg >= max(1.0, d.model_sigma_deg)
+
+
+def test_wmm_undated_log_uses_today() -> None:
+    from onlinecal.place import wmm_declination
+
+    d = wmm_declination(47.4, 8.5, None)
+    assert d.note is not None and "not dated" in d.note and d.model in ("WMM2025",)
+    with pytest.raises(ValueError, match="latitude"):
+        wmm_declination(95.0, 0.0, 2024.0)
 
 
 def test_simulate_gps_refusals(tmp_path: Path) -> None:

@@ -188,6 +188,22 @@ def split_boundaries(data: ImuData) -> list[tuple[bool, ImuData]]:
     return out
 
 
+# The wall-clock time the writers put on a log (tlog stamps, DataFlash GPS week/ms, ULog time_utc_usec): a
+# fixed base so that written files are reproducible; a log's date matters to the World Magnetic Model only.
+WRITE_EPOCH_US = 1_700_000_000_000_000  # 2023-11-14 22:13:20 UTC
+GPS_EPOCH_UNIX_S = 315_964_800  # 1980-01-06 00:00:00 UTC, the GPS week count's origin (leap seconds ignored)
+
+
+def decimal_year(unix_s: float) -> float:
+    """A UNIX time (s) as a decimal year, e.g. 2023.87 (what the World Magnetic Model takes)."""
+    import datetime as _dt
+
+    t = _dt.datetime.fromtimestamp(float(unix_s), tz=_dt.UTC)
+    y0 = _dt.datetime(t.year, 1, 1, tzinfo=_dt.UTC)
+    y1 = _dt.datetime(t.year + 1, 1, 1, tzinfo=_dt.UTC)
+    return t.year + (t - y0).total_seconds() / (y1 - y0).total_seconds()
+
+
 def gps_series(data: ImuData) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(t s, latitude deg, longitude deg) of ``data.series`` "latitude"/"longitude" for a writer, or None when
     the data has no position. Raises ValueError where they are not one time line of finite values."""

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onlinecal.io.base import ImuData, LogError, gps_series
+from onlinecal.io.base import GPS_EPOCH_UNIX_S, WRITE_EPOCH_US, ImuData, LogError, gps_series
 from onlinecal.io.dfparse import DataflashParser, Records
 from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
@@ -330,7 +330,8 @@ def write_dataflash(path: str | Path, data: ImuData) -> None:
     (instance 0; gyro rad/s, acc m/s², T °C as float32) and MAG (instance 0; int16 milligauss, rounded
     and clipped) records merged in time order. TimeUS = round(t µs); times must be ≥ 0. ``data.series``
     ``current`` (A) and ``throttle`` (0..1), where present, are written as BAT (Inst 0, Curr) and CTUN (ThO);
-    ``latitude``/``longitude`` (deg, one time line) as GPS instance 0 with a 3-D fix (Status 3)."""
+    ``latitude``/``longitude`` (deg, one time line) as GPS instance 0 with a 3-D fix (Status 3), its GPS week
+    and ms from ``base.WRITE_EPOCH_US`` + t."""
     for t in (data.t_imu, data.t_mag):
         if t.size and (not np.all(np.isfinite(t)) or t.min() < 0):
             raise ValueError("write_dataflash needs finite, non-negative times")
@@ -373,6 +374,8 @@ def write_dataflash(path: str | Path, data: ImuData) -> None:
         rec["h1"], rec["h2"], rec["id"] = HEAD[0], HEAD[1], GPS_ID
         rec["TimeUS"] = np.rint(ts * 1e6).astype(np.uint64)
         rec["Status"], rec["NSats"], rec["HDop"], rec["U"] = 3, 12, 80, 1  # a 3-D fix (HDop c: 0.8)
+        gps_ms = np.rint((WRITE_EPOCH_US * 1e-6 - GPS_EPOCH_UNIX_S + ts) * 1e3).astype(np.int64)  # GPS time
+        rec["GWk"], rec["GMS"] = gps_ms // 604_800_000, gps_ms % 604_800_000
         rec["Lat"] = np.rint(lat * 1e7).astype(np.int32)  # format L: 1e-7 deg
         rec["Lng"] = np.rint(lon * 1e7).astype(np.int32)
         kinds.append((GPS_ID, GPS_FORMAT, rec))

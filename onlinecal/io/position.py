@@ -32,12 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from onlinecal.io.base import LogError
+from onlinecal.io.base import GPS_EPOCH_UNIX_S, LogError, decimal_year
 from onlinecal.io.validate import check_file
 
 MAX_FIXES = 50  # fixes read before the scan stops
 _FIX_3D = 3  # DataFlash GPS Status, MAVLink GPS_FIX_TYPE, PX4 fix_type: 3 = 3-D fix, higher = better
 _CHUNK = 1 << 22  # bytes of a .tlog scanned at a time
+_Y2000, _Y2100 = 946_684_800.0, 4_102_444_800.0  # UNIX s: a date outside is no date (a clock never set)
 
 
 @dataclass(frozen=True)
@@ -45,13 +46,16 @@ class LogPosition:
     """The vehicle's position as the log's GPS gives it: median of the fixes read (deg, WGS-84).
 
     ``source``: the message and what made it a fix, e.g. "GPS_RAW_INT (fix_type ≥ 3)"; ``n_fixes``: how
-    many fixes the median is of; ``spread_deg``: max − min of their latitudes."""
+    many fixes the median is of; ``spread_deg``: max − min of their latitudes; ``year``: the date of the fixes
+    as a decimal year (None when the log does not say), ``year_source`` where it came from."""
 
     latitude_deg: float
     longitude_deg: float
     n_fixes: int
     source: str
     spread_deg: float = 0.0
+    year: float | None = None
+    year_source: str | None = None
 
     def describe(self, path: str | None = None) -> str:
         """Where the fix came from, e.g. "f.bin's GPS (GPS instance 0, Status ≥ 3; median of 50 fixes)"."""
@@ -59,8 +63,10 @@ class LogPosition:
         return f"{where} GPS ({self.source}; median of {self.n_fixes} fix{'es' if self.n_fixes != 1 else ''})"
 
 
-def _position(lat: np.ndarray, lon: np.ndarray, ok: np.ndarray, source: str, max_fixes: int) -> LogPosition | None:
-    """The median of the first ``max_fixes`` good fixes, or None."""
+def _position(lat: np.ndarray, lon: np.ndarray, ok: np.ndarray, source: str, max_fixes: int,
+              unix_s: np.ndarray | None = None, time_source: str | None = None) -> LogPosition | None:
+    """The median of the first ``max_fixes`` good fixes, or None; ``unix_s`` their UTC times (s; ≤ 0 or outside
+    2000–2100: not known), whose median dates the position."""
     lat, lon = np.asarray(lat, np.float64), np.asarray(lon, np.float64)
     good = (np.asarray(ok, bool) & np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90.0)
             & (np.abs(lon) <= 180.0) & ~((lat == 0.0) & (lon == 0.0)))
@@ -68,8 +74,13 @@ def _position(lat: np.ndarray, lon: np.ndarray, ok: np.ndarray, source: str, max
     if not idx.size:
         return None
     la, lo = lat[idx], lon[idx]
+    year = None
+    if unix_s is not None:
+        u = np.asarray(unix_s, np.float64)[idx]
+        u = u[np.isfinite(u) & (u > _Y2000) & (u < _Y2100)]
+        year = decimal_year(float(np.median(u))) if u.size else None
     return LogPosition(float(np.median(la)), float(np.median(lo)), int(idx.size), source,
-                       float(la.max() - la.min()))
+                       float(la.max() - la.min()), year, time_source if year is not None else None)
 
 
 def log_position(path: str | Path, max_fixes: int = MAX_FIXES) -> LogPosition | None:
@@ -96,11 +107,11 @@ def log_position(path: str | Path, max_fixes: int = MAX_FIXES) -> LogPosition | 
 SAME_PLACE_DEG = 1.0
 
 
-def logs_latitude(paths: list[str]) -> tuple[float | None, str | None, list[str]]:
-    """The latitude of the logs of one replay from their GPS: (deg, where it came from in words, notes).
-
-    None when no log has a fix, or when their fixes are more than :data:`SAME_PLACE_DEG` apart (a note says
-    so: give the latitude by hand)."""
+def logs_place(paths: list[str]) -> tuple[LogPosition | None, str | None, list[str]]:
+    """Where the logs of one replay were recorded, from their GPS: (position, where it came from in words,
+    notes). The position's latitude/longitude are the medians over the logs with a fix, its date the first
+    dated log's. None when no log has a fix, or when their fixes are more than :data:`SAME_PLACE_DEG` of
+    latitude apart (a note says so: give the latitude by hand)."""
     found = [(p, pos) for p in paths if (pos := log_position(p)) is not None]
     if not found:
         return None, None, []
@@ -112,7 +123,11 @@ def logs_latitude(paths: list[str]) -> tuple[float | None, str | None, list[str]
     p0, pos0 = found[0]
     src = pos0.describe(p0) + (f" and {len(found) - 1} more log{'s' if len(found) > 2 else ''}"
                                if len(found) > 1 else "")
-    return float(np.median(lats)), src, []
+    dated = next((pos for _, pos in found if pos.year is not None), None)
+    place = LogPosition(float(np.median(lats)), float(np.median([pos.longitude_deg for _, pos in found])),
+                        sum(pos.n_fixes for _, pos in found), pos0.source, float(lats.max() - lats.min()),
+                        None if dated is None else dated.year, None if dated is None else dated.year_source)
+    return place, src, []
 
 
 # -- DataFlash -------------------------------------------------------------------------------------
@@ -122,6 +137,7 @@ def _dataflash(path: str, max_fixes: int) -> LogPosition | None:
 
     lat: list[np.ndarray] = []
     lon: list[np.ndarray] = []
+    when: list[np.ndarray] = []
     n = 0
     for stretch in DataflashParser(path, {"GPS"}):  # old logs' GPS2 is the second receiver: not read
         for recs in stretch:
@@ -134,13 +150,18 @@ def _dataflash(path: str, max_fixes: int) -> LogPosition | None:
             if keep.any():
                 lat.append(f.values(rows[keep], "Lat"))
                 lon.append(f.values(rows[keep], "Lng"))
+                wk, ms = (("GWk", "GMS") if f.has("GWk") and f.has("GMS") else ("Week", "TimeMS")
+                          if f.has("Week") and f.has("TimeMS") else (None, None))
+                when.append(GPS_EPOCH_UNIX_S + f.values(rows[keep], wk) * 604_800.0
+                            + f.values(rows[keep], ms) * 1e-3 if wk and ms else np.full(int(keep.sum()), np.nan))
                 n += int(keep.sum())
         if n >= max_fixes:
             break
     if not lat:
         return None
     la, lo = np.concatenate(lat), np.concatenate(lon)
-    return _position(la, lo, np.ones(la.size, bool), "GPS instance 0, Status ≥ 3", max_fixes)
+    return _position(la, lo, np.ones(la.size, bool), "GPS instance 0, Status ≥ 3", max_fixes,
+                     np.concatenate(when), "GPS week and ms")
 
 
 # -- MAVLink telemetry log -------------------------------------------------------------------------
@@ -170,7 +191,7 @@ def _tlog(path: str, max_fixes: int) -> LogPosition | None:
     ml = _mavlink()
     gps_id, glob_id = ml.MAVLINK_MSG_ID_GPS_RAW_INT, ml.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
     mav = ml.MAVLink(None)
-    found: dict[int, list[tuple[float, float, bool]]] = {gps_id: [], glob_id: []}
+    found: dict[int, list[tuple[float, float, bool, float]]] = {gps_id: [], glob_id: []}
     try:
         fh = open(path, "rb")  # noqa: SIM115 - closed below, read in chunks
     except OSError as e:
@@ -190,17 +211,19 @@ def _tlog(path: str, max_fixes: int) -> LogPosition | None:
                     continue  # completed in the next chunk (kept in ``tail``), or decoded in the last one
                 with contextlib.suppress(Exception):  # not a packet: a CRC or length that does not check out
                     m = mav.decode(bytearray(data[s:s + size]))
+                    # the tlog's own 8-byte stamp before the packet: µs of the logger's wall clock
+                    stamp = int.from_bytes(data[s - 8:s], "big") * 1e-6 if s >= 8 else float("nan")
                     if m.get_type() == "GPS_RAW_INT":
-                        found[gps_id].append((m.lat * 1e-7, m.lon * 1e-7, m.fix_type >= _FIX_3D))
+                        found[gps_id].append((m.lat * 1e-7, m.lon * 1e-7, m.fix_type >= _FIX_3D, stamp))
                     elif m.get_type() == "GLOBAL_POSITION_INT":
-                        found[glob_id].append((m.lat * 1e-7, m.lon * 1e-7, True))
+                        found[glob_id].append((m.lat * 1e-7, m.lon * 1e-7, True, stamp))
             keep = min(len(data), 300)  # the longest packet (v2, 255 + 12 + 13) straddling the boundary
             tail = data[-keep:]
     for mid, label in ((gps_id, "GPS_RAW_INT, fix_type ≥ 3"), (glob_id, "GLOBAL_POSITION_INT")):
         rows = found[mid]
         if rows:
             a = np.array(rows, np.float64)
-            pos = _position(a[:, 0], a[:, 1], a[:, 2] > 0, label, max_fixes)
+            pos = _position(a[:, 0], a[:, 1], a[:, 2] > 0, label, max_fixes, a[:, 3], "the tlog's timestamps")
             if pos is not None:
                 return pos
     return None
@@ -232,7 +255,9 @@ def _ulog(path: str, max_fixes: int) -> LogPosition | None:
             lat, lon = np.asarray(d["lat"], np.float64) * 1e-7, np.asarray(d["lon"], np.float64) * 1e-7
         else:
             continue
-        pos = _position(lat, lon, np.asarray(d["fix_type"]) >= _FIX_3D, f"{name}, fix_type ≥ 3", max_fixes)
+        utc = np.asarray(d["time_utc_usec"], np.float64) * 1e-6 if "time_utc_usec" in d else None
+        pos = _position(lat, lon, np.asarray(d["fix_type"]) >= _FIX_3D, f"{name}, fix_type ≥ 3", max_fixes, utc,
+                        "time_utc_usec")
         if pos is not None:
             return pos
     d = topics.get("vehicle_global_position")

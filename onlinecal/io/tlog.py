@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from onlinecal.io.base import ImuData, LogError, gps_series
+from onlinecal.io.base import WRITE_EPOCH_US, ImuData, LogError, gps_series
 from onlinecal.io.mavlink import ACC_UNIT, GYRO_UNIT, IMU_MESSAGES, MAG_UNIT, SCALED_INSTANCE, mavutil_v2
 from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
@@ -42,7 +42,7 @@ __all__ = ["IMU_MESSAGES", "TlogReader", "mavutil_v2", "write_tlog"]
 _INT_UNITS = {"acc": ACC_UNIT, "gyro": GYRO_UNIT, "mag": MAG_UNIT}  # RAW_IMU / SCALED_IMU*
 _SI_UNITS = {"acc": 1.0, "gyro": 1.0, "mag": 1.0}  # HIGHRES_IMU
 _DECIDE_AFTER = 1000  # IMU messages looked at before settling for a source other than RAW_IMU id 0
-_TLOG_EPOCH_US = 1_700_000_000_000_000  # wall-clock base of written tlog timestamps (2023-11-14)
+_TLOG_EPOCH_US = WRITE_EPOCH_US  # wall-clock base of written tlog timestamps (2023-11-14)
 _INT16 = (-32768, 32767)
 _NOT_MESSAGES = ("MAV", "HOME", "BAD_DATA")  # entries of pymavlink's ``messages`` that are not a message read
 # ImuData.series from the vehicle's status messages: SYS_STATUS current_battery (cA, −1 = not measured) → current A,

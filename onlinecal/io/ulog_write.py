@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from onlinecal.io.base import ImuData, gps_series
+from onlinecal.io.base import WRITE_EPOCH_US, ImuData, gps_series
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 ULOG_VERSION = 1
@@ -65,8 +65,8 @@ SERIES_TOPICS: dict[str, list[tuple[str, str, str]]] = {
 SERIES_OF = {"battery_status": "current", "actuator_controls_0": "throttle"}
 # the position (ImuData.series "latitude"/"longitude", deg): vehicle_gps_position's first fields as PX4 before
 # v1.14 logged them (lat/lon int32 1e-7 deg, fix_type 3 = a 3-D fix)
-GPS_TOPIC = [("uint64_t", "<u8", "timestamp"), ("int32_t", "<i4", "lat"), ("int32_t", "<i4", "lon"),
-             ("int32_t", "<i4", "alt"), ("uint8_t", "u1", "fix_type")]
+GPS_TOPIC = [("uint64_t", "<u8", "timestamp"), ("uint64_t", "<u8", "time_utc_usec"), ("int32_t", "<i4", "lat"),
+             ("int32_t", "<i4", "lon"), ("int32_t", "<i4", "alt"), ("uint8_t", "u1", "fix_type")]
 SERIES_TOPICS["vehicle_gps_position"] = GPS_TOPIC
 _MSG_ID = {name: i for i, name in enumerate(list(TOPICS) + list(SERIES_TOPICS))}
 
@@ -136,6 +136,7 @@ def _series_records(name: str, usec: NDArray[np.int64], x: NDArray[np.float64],
         rec["lat"] = np.rint(x * 1e7).astype(np.int32)
         rec["lon"] = np.rint(np.asarray(lon) * 1e7).astype(np.int32)
         rec["fix_type"] = 3
+        rec["time_utc_usec"] = WRITE_EPOCH_US + usec  # the UTC time the receiver reports
     elif name == "battery_status":
         rec["current_a"] = x
     else:

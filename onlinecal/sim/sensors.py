@@ -235,6 +235,15 @@ DEFAULT_LONGITUDE_DEG = 8.545594  # PX4 SITL's default home (PX4_HOME_LON), with
 EARTH_RADIUS_M = 6_371_000.0  # mean radius: metres to degrees over a flight's few hundred metres
 
 
+def home_declination(latitude: float = DEFAULT_LATITUDE_DEG, longitude: float = DEFAULT_LONGITUDE_DEG) -> float:
+    """The World Magnetic Model's declination (deg) at the simulated home on the date the writers put on a log
+    (``io.base.WRITE_EPOCH_US``)."""
+    from ..io.base import WRITE_EPOCH_US, decimal_year
+    from ..place import wmm_declination
+
+    return wmm_declination(latitude, longitude, decimal_year(WRITE_EPOCH_US * 1e-6)).deg
+
+
 def gps_series(trajectory: Any, duration: float, latitude: float, longitude: float = DEFAULT_LONGITUDE_DEG,
                rate: float = GPS_RATE_HZ) -> dict[str, tuple[Array, Array]]:
     """The ``latitude``/``longitude`` series (deg) a GPS receiver logs at ``rate`` Hz over [0, duration] s: the
@@ -313,14 +322,16 @@ def simulate(
     noise: float = 1.0,
     latitude: float = DEFAULT_LATITUDE_DEG,
     earth_rate: bool | None = None,
-    declination: float = 0.0,
+    declination: float | None = None,
     gps: bool = False,
 ) -> Simulation:
     """Simulate a session. Returns raw data (ImuData), the truth and the trajectory.
 
     ``profile``: ``paper``, ``flight`` or a vehicle, ``multirotor`` / ``fixedwing`` with options
     (:func:`parse_profile`: ``multirotor:vibration=30,mag_interference=0.2``); ``declination`` (deg, east
-    positive) turns the field's horizontal part from true north (the Earth's rotation stays on true north;
+    positive; None: 0, or with ``gps`` the World Magnetic Model's at the home and the written logs' date, so
+    that the place the log states and its field agree) turns the field's horizontal part from true north (the
+    Earth's rotation stays on true north;
     the truth file's ``field_world`` records it); a vehicle's rotor vibration
     (healthy by default) is added to the accelerometer's specific force while armed, and its interference
     to the magnetometer's field, both before the sensor model (they are physical inputs).
@@ -344,6 +355,8 @@ def simulate(
     T = traj.duration if duration is None else min(duration, traj.duration)
     t_imu, t_mag = sample_times(T, imu_rate, mag_rate)
     mi, mm = traj.evaluate(t_imu), traj.evaluate(t_mag)
+    if declination is None:
+        declination = home_declination(latitude) if gps else 0.0
     h_W = field_world(declination_deg=declination)
     h_B = np.einsum("nji,j->ni", mm.R, h_W)
     vehicle: dict[str, Any] = {}

@@ -96,6 +96,9 @@ class UKFConfig:
     # anomalies is a fraction of a degree). The allowance across north is Ω_E cos φ · σ_D
     declination_deg: float = 0.0
     declination_sigma_deg: float = 15.0
+    # where declination_deg came from when not from `--declination` ("declination +3.38° ± 1.0° from the World
+    # Magnetic Model (WMM2020 at 2023.9; ...)": onlinecal.place): reported, never used by the filter
+    declination_source: str | None = None
     trace_every_s: float = 1.0
     trace_max_rows: int = 100_000
     max_events: int = 1000  # events kept (oldest dropped beyond); the count of all is in nis_summary

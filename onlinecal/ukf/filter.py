@@ -308,6 +308,8 @@ class OnlineCalibrator:
                              "latitude_source": c.latitude_source if known else None,
                              "declination_deg": c.declination_deg if known else None,
                              "declination_sigma_deg": c.declination_sigma_deg if known else None,
+                             "declination_source": (c.declination_source or ("--declination" if
+                                                     c.declination_sigma_deg < 15.0 else "unknown")) if known else None,
                              "heading_known": not self._mag.yaw_free, "allowance_rad_s": list(self._earth[0])}
         return rep
 

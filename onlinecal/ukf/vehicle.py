@@ -379,8 +379,10 @@ def observability_text(rep: dict[str, Any]) -> list[str]:
                          f"includes its projection (up to 7.3e-05 rad/s), allowed for as "
                          f"{max(e['allowance_rad_s']):.1e} rad/s per axis (give --latitude to take it out)")
         else:
-            part = (f"magnetic heading, declination {e.get('declination_deg') or 0.0:g}° ± "
-                    f"{e['declination_sigma_deg']:g}°" if e["heading_known"] else "vertical part only: no heading")
+            wmm = " (World Magnetic Model)" if "World Magnetic Model" in (e.get("declination_source") or "") else ""
+            part = (f"magnetic heading, declination {e.get('declination_deg') or 0.0:.2f}° ± "
+                    f"{e['declination_sigma_deg']:g}°{wmm}" if e["heading_known"] else
+                    "vertical part only: no heading")
             src = e.get("latitude_source")
             told = f"from {src}; " if src and src != "--latitude" else ""
             lines.append(f"the Earth's rotation is taken out of the gyro at latitude {e['latitude_deg']:g}° ({told}"

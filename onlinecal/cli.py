@@ -423,6 +423,11 @@ def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs
     return _show_health(health, "online calibration")
 
 
+# s of IMU data a live run holds back waiting for the vehicle's GPS fix before its filter starts (run without
+# --latitude): a vehicle that has a fix streams GPS_RAW_INT at ≥ 1 Hz; one without costs a 3-s later start
+LIVE_GPS_WAIT_S = 3.0
+
+
 def _ukf_config(a: argparse.Namespace) -> Any:
     """The filter's configuration from the command line, or None for the defaults: ``--latitude DEG``, else
     (replay) the logs' GPS with the World Magnetic Model's declination there (onlinecal.place; ``--latitude
@@ -539,7 +544,7 @@ def cmd_run(a: argparse.Namespace) -> int:
                            checkpoint=a.checkpoint, checkpoint_every_s=a.checkpoint_every, resume=a.resume,
                            rate_hz=a.rate, apply=a.apply, transform=live_transform(init),
                            idle_timeout_s=a.idle_timeout or None, source_system=a.sysid, source_component=a.compid,
-                           **_scales(a))
+                           gps_wait_s=LIVE_GPS_WAIT_S if a.latitude is None else 0.0, **_scales(a))
         if init is not None and init.extensions and not res.calibration.extensions:
             res.calibration = res.calibration.replace(extensions=init.extensions)
     except ImportError as e:
@@ -783,7 +788,8 @@ def _positive_int(s: str) -> int:
 def _add_latitude(p: argparse.ArgumentParser, from_logs: bool) -> None:
     default = ("default: the logs' GPS where they have a 3-D fix, else not known (the gyro bias keeps an "
                "allowance for it); none: not taken out even where a log has GPS" if from_logs else
-               "default: not known, the gyro bias keeps an allowance for it")
+               "default: the vehicle's GPS_RAW_INT fix if one arrives within the first 3 s of data (the filter "
+               "starts then), else not known; none: not taken out, no wait")
     p.add_argument("--latitude", type=_latitude, default=None, metavar="DEG|none",
                    help="where the vehicle is (degrees, north positive): the Earth's rotation is taken out of "
                         f"the gyro (its vertical part at once, the horizontal once a magnetometer holds the "

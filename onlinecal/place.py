@@ -99,12 +99,31 @@ def earth_rate_config(latitude: float | str | None, declination: float | None,
             raise ValueError("--declination needs --latitude (it places the Earth's rotation, which needs the "
                              "latitude), or a log with a GPS fix")
         return None, info, warnings
+    if where is not None:
+        config, more = config_at(where, source or "", declination, None)
+        return config, info + more, warnings
     extra: dict[str, Any] = {}
     if declination is not None:
         extra = {"declination_deg": float(declination), "declination_sigma_deg": DECLINATION_FLOOR_DEG}
-    elif where is not None:
-        d = wmm_declination(where.latitude_deg, where.longitude_deg, where.year)
-        extra = {"declination_deg": d.deg, "declination_sigma_deg": d.sigma_deg,
-                 "declination_source": d.describe()}
-        info.append(d.describe() + (f" ({d.note})" if d.note else f" (the log's date from {where.year_source})"))
     return UKFConfig(latitude_deg=float(latitude), latitude_source=source, **extra), info, warnings
+
+
+def config_at(where: Any, source: str, declination: float | None, base: Any) -> tuple[Any, list[str]]:
+    """``base`` (a UKFConfig; None: the defaults) told the position ``where`` (an io.position.LogPosition):
+    its latitude, and ``declination`` (± 1°) or else the WMM's at the position and its date. Returns the config
+    and the info line about the declination."""
+    from dataclasses import replace
+
+    from onlinecal.ukf import UKFConfig
+
+    info: list[str] = []
+    if declination is not None:
+        extra: dict[str, Any] = {"declination_deg": float(declination),
+                                 "declination_sigma_deg": DECLINATION_FLOOR_DEG, "declination_source": None}
+    else:
+        d = wmm_declination(where.latitude_deg, where.longitude_deg, where.year)
+        extra = {"declination_deg": d.deg, "declination_sigma_deg": d.sigma_deg, "declination_source": d.describe()}
+        info.append(d.describe() + (f" ({d.note})" if d.note else f" (the log's date from {where.year_source})"))
+    config = replace(base if base is not None else UKFConfig(), latitude_deg=float(where.latitude_deg),
+                     latitude_source=source, **extra)
+    return config, info

@@ -344,3 +344,43 @@ def test_live_run_with_latitude_records_it(paper, tmp_path) -> None:
     assert e["latitude_deg"] == pytest.approx(-33.9) and e["declination_deg"] == pytest.approx(12.5)
     assert e["declination_sigma_deg"] == pytest.approx(1.0) and e["heading_known"] is True
     assert "the Earth's rotation is taken out of the gyro at latitude -33.9°" in run.out.read_text()
+
+
+def test_live_run_takes_the_latitude_from_the_vehicles_gps(tmp_path) -> None:
+    """``run`` without ``--latitude`` over a real UDP link: the vehicle's GPS_RAW_INT (a simulated multirotor's
+    logged position, sent beside RAW_IMU) reaches the filter before it starts — the same latitude and WMM
+    declination a replay of the same flight takes from its log, named as the vehicle's GPS; ``--latitude
+    none`` starts at once without it."""
+    from onlinecal.sim import simulate
+    from onlinecal.sim.motion import DEFAULT_LATITUDE_DEG
+
+    sim = simulate("multirotor", 4, duration=12.0, imu_rate=100.0, mag_rate=50.0, gps=True)
+    h = sim.truth.field_world
+    field_decl = float(np.degrees(np.arctan2(h[0], h[1])))
+    duration = float(sim.data.t_imu[-1] - sim.data.t_imu[0]) - 0.005
+    results = {}
+    for name, extra in (("gps", []), ("none", ["--latitude", "none"])):
+        port = free_port()
+        out = tmp_path / f"{name}.json"
+        run = Run(tmp_path, name, "--connect", f"udpin:127.0.0.1:{port}", "--json", str(out), "--duration",
+                  f"{duration}", *extra)
+        snd = None
+        try:
+            run.wait_for("link open")
+            snd = sending(sim.data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE)
+            rc = run.wait()
+        finally:
+            run.kill()
+            if snd is not None:
+                snd.finish()
+        assert rc in (0, 4, 5), run.err.read_text()
+        results[name] = (json.loads(out.read_text())["meta"]["online"]["observability"]["earth_rate"],
+                         run.out.read_text() + run.err.read_text(), snd.result)
+    e, text, sent = results["gps"]
+    assert sent["gps"] > 0
+    assert e["latitude_deg"] == pytest.approx(DEFAULT_LATITUDE_DEG, abs=1e-6)
+    assert "GPS_RAW_INT on the link" in e["latitude_source"] and "WMM2020" in e["declination_source"]
+    assert e["declination_deg"] == pytest.approx(field_decl, abs=1e-6)
+    assert "from the vehicle's GPS" in text
+    e, text, _ = results["none"]
+    assert e["latitude_deg"] is None and "GPS" not in text

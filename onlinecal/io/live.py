@@ -69,6 +69,7 @@ from onlinecal.io.mavlink import (
     MSG_ID,
     mavutil_v2,
 )
+from onlinecal.io.position import MAX_FIXES, LogPosition, position_of
 from onlinecal.io.validate import SEGMENT_GAP_S, SampleFilter
 
 RAW_IMU_ID = MSG_ID["RAW_IMU"]
@@ -83,6 +84,8 @@ _RECV_BATCH = 1000  # messages handled before the block/stop checks run again
 _JUMP_CAP_S = 1.0  # the data time a jump forward adds before a sample period is known (then 10 periods)
 _RCVBUF = 1 << 24  # bytes asked for the UDP receive buffer (the kernel caps it at net.core.rmem_max)
 _TYPE_RANK = {"RAW_IMU": 0, "HIGHRES_IMU": 1, "SCALED_IMU": 2, "SCALED_IMU2": 2, "SCALED_IMU3": 2}
+# the vehicle's position on the link (LiveSource.gps_position): the raw fix first, the fused position else
+_GPS_TYPES = ("GPS_RAW_INT", "GLOBAL_POSITION_INT")
 
 
 _BAD = object()  # recv_msg raised MAVError
@@ -328,6 +331,8 @@ class LiveSource:
         self._mag_rows: list[tuple] = []
         self._block_wall: float | None = None  # wall time the pending block got its first sample
         self._last_data = now  # wall time of the last RAW_IMU of the source
+        # (lat deg, lon deg, a fix?, UTC s or NaN) per position message type, the first MAX_FIXES of each
+        self._gps: dict[str, list[tuple[float, float, bool, float]]] = {t: [] for t in _GPS_TYPES}
         self._done: str | None = None  # why the stream ends: 'duration' | 'timeout' | 'closed'
         self._full = False  # duration_s of data emitted: later samples are not wanted
         # Loss estimate and the position of the last sample handed on (for checkpoints).
@@ -637,8 +642,35 @@ class LiveSource:
                 self.stats["ack_result"] = int(msg.result)
                 if msg.result != self._mavlink.MAV_RESULT_ACCEPTED:
                     self._note(f"the vehicle refused the RAW_IMU rate request (MAV_RESULT {msg.result})")
+        elif typ in _GPS_TYPES:
+            self._take_gps(link, msg, typ)
         elif typ == "BAD_DATA":
             self.stats["bad_data"] += 1
+
+    def _take_gps(self, link: _Link, msg: Any, typ: str) -> None:
+        """Keep a position message of the vehicle read (GPS_RAW_INT: a fix when fix_type ≥ 3)."""
+        system = self._source[0] if self._source else (link.vehicle[0] if link.vehicle else self.want_system)
+        rows = self._gps[typ]
+        if (system is not None and msg.get_srcSystem() != system) or len(rows) >= MAX_FIXES:
+            return
+        if typ == "GPS_RAW_INT":  # time_usec: UNIX µs once the receiver has the time, else since boot
+            rows.append((msg.lat * 1e-7, msg.lon * 1e-7, msg.fix_type >= 3, msg.time_usec * 1e-6))
+        else:
+            rows.append((msg.lat * 1e-7, msg.lon * 1e-7, True, float("nan")))
+
+    def gps_position(self) -> LogPosition | None:
+        """The vehicle's position from the link's GPS_RAW_INT fixes (fix_type ≥ 3), else its
+        GLOBAL_POSITION_INT, as :func:`onlinecal.io.position.log_position` reads a tlog; None before a fix.
+        Safe to call from another thread than :meth:`blocks`'s (it copies the lists the link appends to)."""
+        for typ, label in (("GPS_RAW_INT", "GPS_RAW_INT on the link, fix_type ≥ 3"),
+                           ("GLOBAL_POSITION_INT", "GLOBAL_POSITION_INT on the link")):
+            rows = list(self._gps[typ])
+            if rows:
+                a = np.array(rows, np.float64)
+                pos = position_of(a[:, 0], a[:, 1], a[:, 2] > 0, label, MAX_FIXES, a[:, 3], "GPS_RAW_INT time_usec")
+                if pos is not None:
+                    return pos
+        return None
 
     def _is_source(self, link: _Link, key: tuple[int, int]) -> bool:
         """Is ``key`` (system, component) the vehicle read? Chosen once: the one asked for, else the first

@@ -63,10 +63,10 @@ class LogPosition:
         return f"{where} GPS ({self.source}; median of {self.n_fixes} fix{'es' if self.n_fixes != 1 else ''})"
 
 
-def _position(lat: np.ndarray, lon: np.ndarray, ok: np.ndarray, source: str, max_fixes: int,
+def position_of(lat: np.ndarray, lon: np.ndarray, ok: np.ndarray, source: str, max_fixes: int,
               unix_s: np.ndarray | None = None, time_source: str | None = None) -> LogPosition | None:
-    """The median of the first ``max_fixes`` good fixes, or None; ``unix_s`` their UTC times (s; ≤ 0 or outside
-    2000–2100: not known), whose median dates the position."""
+    """The position of fixes (deg): the median of the first ``max_fixes`` good ones, or None; ``unix_s`` their
+    UTC times (s; ≤ 0 or outside 2000–2100: not known), whose median dates the position."""
     lat, lon = np.asarray(lat, np.float64), np.asarray(lon, np.float64)
     good = (np.asarray(ok, bool) & np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90.0)
             & (np.abs(lon) <= 180.0) & ~((lat == 0.0) & (lon == 0.0)))
@@ -160,7 +160,7 @@ def _dataflash(path: str, max_fixes: int) -> LogPosition | None:
     if not lat:
         return None
     la, lo = np.concatenate(lat), np.concatenate(lon)
-    return _position(la, lo, np.ones(la.size, bool), "GPS instance 0, Status ≥ 3", max_fixes,
+    return position_of(la, lo, np.ones(la.size, bool), "GPS instance 0, Status ≥ 3", max_fixes,
                      np.concatenate(when), "GPS week and ms")
 
 
@@ -223,7 +223,7 @@ def _tlog(path: str, max_fixes: int) -> LogPosition | None:
         rows = found[mid]
         if rows:
             a = np.array(rows, np.float64)
-            pos = _position(a[:, 0], a[:, 1], a[:, 2] > 0, label, max_fixes, a[:, 3], "the tlog's timestamps")
+            pos = position_of(a[:, 0], a[:, 1], a[:, 2] > 0, label, max_fixes, a[:, 3], "the tlog's timestamps")
             if pos is not None:
                 return pos
     return None
@@ -256,17 +256,17 @@ def _ulog(path: str, max_fixes: int) -> LogPosition | None:
         else:
             continue
         utc = np.asarray(d["time_utc_usec"], np.float64) * 1e-6 if "time_utc_usec" in d else None
-        pos = _position(lat, lon, np.asarray(d["fix_type"]) >= _FIX_3D, f"{name}, fix_type ≥ 3", max_fixes, utc,
+        pos = position_of(lat, lon, np.asarray(d["fix_type"]) >= _FIX_3D, f"{name}, fix_type ≥ 3", max_fixes, utc,
                         "time_utc_usec")
         if pos is not None:
             return pos
     d = topics.get("vehicle_global_position")
     if d is not None and "lat" in d and "lon" in d:
-        pos = _position(d["lat"], d["lon"], np.ones(len(d["lat"]), bool), "vehicle_global_position", max_fixes)
+        pos = position_of(d["lat"], d["lon"], np.ones(len(d["lat"]), bool), "vehicle_global_position", max_fixes)
         if pos is not None:
             return pos
     d = topics.get("vehicle_local_position")
     if d is not None and {"ref_lat", "ref_lon", "xy_global"} <= set(d):
-        return _position(d["ref_lat"], d["ref_lon"], np.asarray(d["xy_global"]) != 0,
+        return position_of(d["ref_lat"], d["ref_lon"], np.asarray(d["xy_global"]) != 0,
                          "vehicle_local_position's origin, xy_global", max_fixes)
     return None

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from onlinecal.io.base import ImuData, LogError
+from onlinecal.io.base import WRITE_EPOCH_US, ImuData, LogError, gps_series
 from onlinecal.io.mavlink import (
     ACC_UNIT,
     GYRO_UNIT,
@@ -112,6 +112,9 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     or until ``stop_event``. ``hold``: while set, nothing is sent and the pacing clock stops (a link
     outage: the stream goes on where it stopped, not with a burst to catch up).
 
+    A ``latitude``/``longitude`` series in ``data`` (``simulate(..., gps=True)``) is sent as GPS_RAW_INT with a
+    3-D fix at its own times (time_usec: ``io.base.WRITE_EPOCH_US`` + t, a UNIX time), counted in ``gps``.
+
     Returns counts: ``sent`` (RAW_IMU packets written, duplicates included), ``samples``, ``dropped``,
     ``reordered``, ``duplicated``, ``commands`` (COMMAND_LONGs answered), ``interval_us`` (the last
     interval asked for with SET_MESSAGE_INTERVAL, or None), ``peer`` (False if no peer turned up),
@@ -125,7 +128,12 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     stats: dict[str, Any] = dict(counts)
     table: dict[str, float] = {} if params is None else params
     stats.update(sent=0, samples=int(rows.shape[0]), commands=0, interval_us=None, peer=True, param_sets=0,
-                 params=table)
+                 params=table, gps=0)
+    fixes = gps_series(data)
+    gps_rows = [] if fixes is None else list(zip(np.rint(fixes[0] * 1e6).astype(np.int64).tolist(),
+                                                  np.rint(fixes[1] * 1e7).astype(np.int64).tolist(),
+                                                  np.rint(fixes[2] * 1e7).astype(np.int64).tolist(), strict=True))
+    gi = 0
     stop = stop_event or threading.Event()
     try:
         conn = mavutil.mavlink_connection(url, source_system=system_id, source_component=1, retries=0)
@@ -233,6 +241,11 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
             if heartbeat and (now >= next_hb_wall or t_data >= next_hb_data):
                 send_heartbeat()
                 next_hb_wall, next_hb_data = now + 1.0, t_data + 1_000_000
+            while gi < len(gps_rows) and gps_rows[gi][0] <= t_data:
+                g_us, g_lat, g_lon = gps_rows[gi]
+                conn.mav.gps_raw_int_send(WRITE_EPOCH_US + g_us, 3, g_lat, g_lon, 0, 80, 120, 0, 0, 12)
+                stats["gps"] += 1
+                gi += 1
             us, ax, ay, az, gx, gy, gz, mx, my, mz, tc = (int(v) for v in rows[k])
             # Packed once and the sequence number advanced by hand so a duplicate is byte-identical (same
             # seq), as a duplicating radio or router would deliver it.

@@ -84,7 +84,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
              source_options: dict[str, Any] | None = None, log: TextIO | None = None,
              transform: Callable[[ImuData], ImuData] | None = None, idle_timeout_s: float | None = 10.0,
              imu: int = 0, source_system: int | None = None,
-             source_component: int | None = None) -> LiveResult:
+             source_component: int | None = None, gps_wait_s: float = 0.0) -> LiveResult:
     """Calibrate online from the live link ``url`` until ``duration_s`` s of vehicle time (from the first
     sample, across resumes), or Ctrl-C / SIGTERM, which end the run cleanly with a result.
 
@@ -102,6 +102,11 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
     ``idle_timeout_s``: the run ends, with its result, after this many seconds without an IMU message (None:
     never; a LogError when nothing arrived at all). ``imu``: IMU instance; ``source_system``/
     ``source_component``: the vehicle read when several send (default: the first vehicle HEARTBEAT's).
+    ``gps_wait_s``: a new run whose ``config`` has no latitude holds the link's first blocks back until the
+    vehicle's GPS_RAW_INT (or GLOBAL_POSITION_INT) gives a fix, or this many seconds of IMU data passed, and
+    then starts the filter told the fix's latitude and the World Magnetic Model's declination there
+    (:func:`onlinecal.place.config_at`) — or, without a fix, as it was (0: no wait, the default here; the
+    command line waits 3 s).
     A vehicle clock restart (reboot, also between a checkpoint and ``resume``) is a clock segment: the
     attitude restarts there, the calibration carries over, and the result names it in
     ``meta["online"]["segments"]``.
@@ -121,6 +126,8 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
                      **opts)
     run = _LiveRun(url, cal, src, ck, checkpoint, rate_hz, duration_s, TraceCsv(trace_out, resume=ck is not None),
                    transform, out)
+    if ck is None and gps_wait_s > 0 and cal.config.latitude_deg is None:
+        run.wait_for_gps(gps_wait_s, lambda c: OnlineCalibrator(init, c))
     if ck is not None:
         try:
             src.resume_from(ck["source"])
@@ -184,6 +191,48 @@ class _LiveRun:
         self.pos_fed: dict[str, Any] | None = ck["source"] if ck else None  # source position of the last block fed
         self.stopped: list[int] = []
         self.t0 = time.perf_counter()
+        self.gps_wait_s = 0.0
+        self.make_cal: Callable[[UKFConfig], OnlineCalibrator] | None = None
+        self.held: list[tuple[ImuData, dict[str, Any]]] = []  # blocks held back while waiting for a GPS fix
+
+    def wait_for_gps(self, wait_s: float, make_cal: Callable[[UKFConfig], OnlineCalibrator]) -> None:
+        """Hold the first blocks back until the link gives a GPS fix or ``wait_s`` s of data passed; the
+        calibrator is then made anew by ``make_cal`` with the fix's place (:meth:`_release`)."""
+        self.gps_wait_s, self.make_cal = float(wait_s), make_cal
+
+    def _offer(self, block: ImuData, pos: dict[str, Any]) -> bool:
+        """:meth:`_take`, or hold the block while waiting for a GPS fix."""
+        if self.gps_wait_s <= 0:
+            return self._take(block, pos)
+        self.held.append((block, pos))
+        times = [b.t_imu for b, _ in self.held if b.n_imu]
+        span = float(times[-1][-1] - times[0][0]) if times else 0.0
+        if self.src.gps_position() is None and span < self.gps_wait_s:
+            return False
+        return self._release()
+
+    def _release(self) -> bool:
+        """End the wait for a GPS fix: the filter made with the fix's place (or as it was, with a line saying
+        so), then the held blocks fed in order."""
+        if self.gps_wait_s <= 0:
+            return False
+        where = self.src.gps_position()
+        if where is not None and self.make_cal is not None:
+            from ..place import config_at
+
+            source = f"the vehicle's GPS ({where.source}; {where.n_fixes} fix{'es' if where.n_fixes != 1 else ''})"
+            config, info = config_at(where, source, None, self.cal.config)
+            self.cal = self.make_cal(config)
+            print(f"onlinecal run: latitude {where.latitude_deg:.4f}° from {source}: the Earth's rotation is taken "
+                  "out of the gyro (--latitude none: not)", file=self.out, flush=True)
+            for line in info:
+                print(f"onlinecal run: {line}", file=self.out, flush=True)
+        else:
+            print(f"onlinecal run: no GPS fix on the link within {self.gps_wait_s:g} s of data: the Earth's rotation "
+                  "is not taken out of the gyro (give --latitude)", file=self.out, flush=True)
+        self.gps_wait_s = 0.0
+        held, self.held = self.held, []
+        return any([self._take(b, p) for b, p in held])
 
     def link_stats(self) -> dict[str, Any]:
         st = dict(self.src.stats)
@@ -265,10 +314,11 @@ class _LiveRun:
                 except queue.Empty:
                     item = None
                 if item is _END:
+                    dirty = self._release() or dirty  # a stream shorter than the wait for a GPS fix
                     break
                 if isinstance(item, BaseException):
                     raise item
-                if item is not None and self._take(*item):
+                if item is not None and self._offer(*item):
                     dirty = True
                 now = time.monotonic()
                 if dirty and now >= next_ckpt:

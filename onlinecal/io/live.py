@@ -69,7 +69,7 @@ from onlinecal.io.mavlink import (
     MSG_ID,
     mavutil_v2,
 )
-from onlinecal.io.position import MAX_FIXES, LogPosition, position_of
+from onlinecal.io.position import MAX_FIXES, LogPosition, mavlink_position
 from onlinecal.io.validate import SEGMENT_GAP_S, SampleFilter
 
 RAW_IMU_ID = MSG_ID["RAW_IMU"]
@@ -662,15 +662,9 @@ class LiveSource:
         """The vehicle's position from the link's GPS_RAW_INT fixes (fix_type ≥ 3), else its
         GLOBAL_POSITION_INT, as :func:`onlinecal.io.position.log_position` reads a tlog; None before a fix.
         Safe to call from another thread than :meth:`blocks`'s (it copies the lists the link appends to)."""
-        for typ, label in (("GPS_RAW_INT", "GPS_RAW_INT on the link, fix_type ≥ 3"),
-                           ("GLOBAL_POSITION_INT", "GLOBAL_POSITION_INT on the link")):
-            rows = list(self._gps[typ])
-            if rows:
-                a = np.array(rows, np.float64)
-                pos = position_of(a[:, 0], a[:, 1], a[:, 2] > 0, label, MAX_FIXES, a[:, 3], "GPS_RAW_INT time_usec")
-                if pos is not None:
-                    return pos
-        return None
+        return mavlink_position([("GPS_RAW_INT on the link, fix_type ≥ 3", list(self._gps["GPS_RAW_INT"])),
+                                 ("GLOBAL_POSITION_INT on the link", list(self._gps["GLOBAL_POSITION_INT"]))],
+                                MAX_FIXES, "GPS_RAW_INT time_usec")
 
     def _is_source(self, link: _Link, key: tuple[int, int]) -> bool:
         """Is ``key`` (system, component) the vehicle read? Chosen once: the one asked for, else the first

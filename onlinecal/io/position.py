@@ -219,11 +219,18 @@ def _tlog(path: str, max_fixes: int) -> LogPosition | None:
                         found[glob_id].append((m.lat * 1e-7, m.lon * 1e-7, True, stamp))
             keep = min(len(data), 300)  # the longest packet (v2, 255 + 12 + 13) straddling the boundary
             tail = data[-keep:]
-    for mid, label in ((gps_id, "GPS_RAW_INT, fix_type ≥ 3"), (glob_id, "GLOBAL_POSITION_INT")):
-        rows = found[mid]
+    return mavlink_position([("GPS_RAW_INT, fix_type ≥ 3", found[gps_id]),
+                             ("GLOBAL_POSITION_INT", found[glob_id])], max_fixes, "the tlog's timestamps")
+
+
+def mavlink_position(sources: list[tuple[str, list[tuple[float, float, bool, float]]]], max_fixes: int,
+                     time_source: str) -> LogPosition | None:
+    """The position of the first of ``sources`` (label, rows of (lat deg, lon deg, a fix?, UTC s or NaN)) that
+    has a fix: GPS_RAW_INT's rows before GLOBAL_POSITION_INT's, in a tlog as on a live link."""
+    for label, rows in sources:
         if rows:
             a = np.array(rows, np.float64)
-            pos = position_of(a[:, 0], a[:, 1], a[:, 2] > 0, label, max_fixes, a[:, 3], "the tlog's timestamps")
+            pos = position_of(a[:, 0], a[:, 1], a[:, 2] > 0, label, max_fixes, a[:, 3], time_source)
             if pos is not None:
                 return pos
     return None

@@ -233,6 +233,7 @@ def cmd_batch(a: argparse.Namespace) -> int:
 
     _check_out(a.json, "--json")
     _check_out(a.report, "--report", directory=True)
+    _latitude_deg(a)  # the logs' GPS read (its line printed) before the work starts
     report = _report_dir(a.report) if a.report else None
     steps = [f"read {Path(p).name}" for p in a.logs] + ["batch pipeline"] + (["report"] * 5 if report else [])
     with stages(steps, desc="batch") as st:
@@ -247,7 +248,7 @@ def cmd_batch(a: argparse.Namespace) -> int:
                 reds += red
         st.next("batch pipeline")
         t0 = time.perf_counter()
-        res = run_batch(logs, g=a.gravity, reduced=reds)
+        res = run_batch(logs, g=a.gravity, reduced=reds, latitude_deg=_latitude_deg(a))
         dt = time.perf_counter() - t0
         written = write_report(report, logs, "batch", batch=res, g=a.gravity, progress=st) if report else []
     _warn(res.warnings)
@@ -280,7 +281,7 @@ def _initial(a: argparse.Namespace, logs: list[Any]) -> tuple[Any, Any]:
         from .progress import spinner
 
         with spinner("batch (the filter's start)"):
-            res = run_batch(logs)
+            res = run_batch(logs, latitude_deg=_latitude_deg(a))
         _warn(res.warnings)
         start, notes = filter_start(res.calibration, _mag_raw(logs))
         _warn(notes)
@@ -386,7 +387,7 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
 
         with spinner("batch (the filter's start)"):
             logs, reds = _read_for_batch(a.logs, a)
-            bres = run_batch(logs, reduced=reds)
+            bres = run_batch(logs, reduced=reds, latitude_deg=_latitude_deg(a))
         _warn(bres.warnings)
         init, notes = filter_start(bres.calibration, _mag_raw(logs))
         _warn(notes)
@@ -428,6 +429,13 @@ def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs
 LIVE_GPS_WAIT_S = 3.0
 
 
+def _latitude_deg(a: argparse.Namespace) -> float | None:
+    """The latitude the command is told (``--latitude``, or the logs' GPS: :func:`_ukf_config`), or None: the
+    batch takes the Earth rotation's vertical part out of its gyro bias with it."""
+    config = _ukf_config(a)
+    return None if config is None else config.latitude_deg
+
+
 def _ukf_config(a: argparse.Namespace) -> Any:
     """The filter's configuration from the command line, or None for the defaults: ``--latitude DEG``, else
     (replay) the logs' GPS with the World Magnetic Model's declination there (onlinecal.place; ``--latitude
@@ -445,6 +453,8 @@ def _ukf_config(a: argparse.Namespace) -> Any:
         raise UsageError(str(e)) from None
     _warn(warnings)
     for line in info:
+        if line.startswith("declination") and not hasattr(a, "declination"):
+            continue  # batch: the declination serves the filter only
         print(f"onlinecal: {line}", file=sys.stderr)
     a._ukf_config_made = (config,)
     return config
@@ -785,7 +795,7 @@ def _positive_int(s: str) -> int:
     return int(_POS_INT(s))
 
 
-def _add_latitude(p: argparse.ArgumentParser, from_logs: bool) -> None:
+def _add_latitude(p: argparse.ArgumentParser, from_logs: bool, declination: bool = True) -> None:
     default = ("default: the logs' GPS where they have a 3-D fix, else not known (the gyro bias keeps an "
                "allowance for it); none: not taken out even where a log has GPS" if from_logs else
                "default: the vehicle's GPS_RAW_INT fix if one arrives within the first 3 s of data (the filter "
@@ -794,6 +804,8 @@ def _add_latitude(p: argparse.ArgumentParser, from_logs: bool) -> None:
                    help="where the vehicle is (degrees, north positive): the Earth's rotation is taken out of "
                         f"the gyro (its vertical part at once, the horizontal once a magnetometer holds the "
                         f"heading); {default}")
+    if not declination:
+        return
     p.add_argument("--declination", type=_declination_deg, default=None, metavar="DEG",
                    help="with a latitude: the magnetic declination, east positive (e.g. from the World Magnetic "
                         "Model at the log's position), taken as known to 1 deg; default: unknown, 0 ± 15 deg")
@@ -928,6 +940,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_json(p, "the calibration")
     p.add_argument("--gravity", type=_POS, default=9.80665, metavar="G", help="local g, m/s^2 (default 9.80665)")
     p.add_argument("--report", default=None, metavar="DIR", help="write PNG figures and report.md into DIR")
+    _add_latitude(p, from_logs=True, declination=False)
     _add_scales(p)
     p.set_defaults(fn=cmd_batch)
 

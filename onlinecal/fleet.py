@@ -113,8 +113,14 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
         rec["n_imu"], rec["log_s"] = d.n_imu, d.duration
         rec["t_start"], rec["t_start_source"] = log_start_time(path, d)
         warnings = list(d.warnings)
+        config = None
+        if gps:
+            from .place import earth_rate_config
+
+            config, _info, place_notes = earth_rate_config(None, None, [path])
+            warnings += place_notes
         if init == "batch":
-            b = run_batch([d], g=g)
+            b = run_batch([d], g=g, latitude_deg=None if config is None else config.latitude_deg)
             from .health import filter_start
 
             cal0, notes = filter_start(b.calibration, d.mag if d.n_mag else None)
@@ -125,12 +131,6 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
             cal0 = Calibration.from_dict(init)
         else:
             raise ValueError(f"init must be 'batch', 'none' or a calibration dict, not {init!r}")
-        config = None
-        if gps:
-            from .place import earth_rate_config
-
-            config, _info, place_notes = earth_rate_config(None, None, [path])
-            warnings += place_notes
         res = replay_chunked([d], cal0, config=config)
         warnings += list(getattr(res, "warnings", []))
         from .health import assess

@@ -29,7 +29,8 @@ from .sensors import StepReport, sqrt_psd
 Array = NDArray[np.float64]
 
 
-def gyro_bias_cumsum(segs: list[Segmentation], notes: list[str] | None = None) -> tuple[Array, Array]:
+def gyro_bias_cumsum(segs: list[Segmentation], notes: list[str] | None = None,
+                     latitude_deg: float | None = None, figures: dict[str, Any] | None = None) -> tuple[Array, Array]:
     """Bias o_gyr by an LS line fit to the cumulative sum of the raw rate over rests (eqs. 34–35).
 
     In a rest the integrated raw rate grows as θ(t) = o·t + c; one common slope over all rests (each
@@ -37,7 +38,9 @@ def gyro_bias_cumsum(segs: list[Segmentation], notes: list[str] | None = None) -
     noise of each rest's own variance, and at least the standard error of the rest means; where the rests
     disagree beyond their own noise (:func:`rest_disagreement`) σ covers their spread, with a sentence
     appended to ``notes``; and σ includes the Earth's rotation where the rests' attitudes do not cancel it
-    (end of the function).
+    (end of the function). With ``latitude_deg`` (deg, a log's GPS or ``--latitude``) its vertical part is
+    taken out of o (recorded in ``figures["earth_rate_removed"]``) and only the horizontal part, whose
+    direction needs the heading, stays in σ.
 
     The estimator is linear in the rates, o = Σ_j β_j w_j / Σ tc², and weights a rest by about its length
     cubed (the slope's leverage): a 30 s rest outweighs a 5 s one 200 times. Its variance is therefore
@@ -107,8 +110,22 @@ def gyro_bias_cumsum(segs: list[Segmentation], notes: list[str] | None = None) -
     # latitude unknown, its rms per axis is Ω_E/√3 (the UKF's zero-rate allowance) times the length of the
     # weighted mean gravity direction: 1 for one attitude, ~0 for balanced faces. Added in quadrature.
     wsum = sum(b for b, _ in up_w)
-    m_up = float(np.linalg.norm(sum(b * u for b, u in up_w) / wsum)) if wsum > 0 else 1.0
-    return o, np.hypot(sigma, OMEGA_EARTH / np.sqrt(3.0) * min(m_up, 1.0))
+    u_bar = sum(b * u for b, u in up_w) / wsum if wsum > 0 else np.array([0.0, 0.0, 1.0])
+    m_up = min(float(np.linalg.norm(u_bar)), 1.0)
+    if latitude_deg is None:
+        return o, np.hypot(sigma, OMEGA_EARTH / np.sqrt(3.0) * m_up)
+    # Told the latitude φ: each rest's vertical part, Ω_E sin φ along its own up (the accelerometer's mean
+    # specific force), enters o with the rest's weight — the same weighted mean u_bar. What is left is the
+    # horizontal part, Ω_E cos φ along north at a heading the rests do not give: per axis rms
+    # Ω_E cos φ · √((1 − û_k²)/2) of the mean up direction û (nothing on a level body's z), times m_up as above.
+    phi = np.radians(latitude_deg)
+    removed = OMEGA_EARTH * np.sin(phi) * u_bar
+    o = o - removed
+    if figures is not None:
+        figures["earth_rate_removed"] = {"latitude_deg": float(latitude_deg), "rad_s": removed.tolist()}
+    u_hat = u_bar / max(float(np.linalg.norm(u_bar)), 1e-12)
+    horizontal = OMEGA_EARTH * np.cos(phi) * np.sqrt(np.clip(1.0 - u_hat**2, 0.0, 1.0) / 2.0) * m_up
+    return o, np.hypot(sigma, horizontal)
 
 
 def rest_disagreement(means: Array, se: Array) -> tuple[Array, float, NDArray[np.bool_]]:
@@ -411,7 +428,8 @@ MIN_INTEGRATION_RATE = 20.0  # Hz: below it no step integrates the gyro (hand an
 
 
 def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: SensorCalibration | None,
-                  rng: np.random.Generator, g: float = 9.80665) -> tuple[SensorCalibration, StepReport]:
+                  rng: np.random.Generator, g: float = 9.80665,
+                  latitude_deg: float | None = None) -> tuple[SensorCalibration, StepReport]:
     """The tool-free gyro pipeline: bias (34–35) → axes (28–31) → scale (36) → eq. 36 over all motions;
     where neither phases about all three axes nor four rest-to-rest motions exist (a hand-held session),
     eq. 36 generalised to any rotation (:func:`fit_gyro_kinematic`): with the rests' bias where there are
@@ -420,10 +438,11 @@ def fit_gyroscope(segs: list[Segmentation], acc: SensorCalibration | None, mag: 
     (``figures["clipped"]``), and each resting recording's own bias in ``figures["bias_per_file"]``.
     Where none of these can run, the scale and axes are *undetermined*: the matrix stays the identity, its σ
     is absent, and ``figures["undetermined"]`` lists the terms with a warning naming the missing motion.
+    ``latitude_deg``: the rests' bias without the Earth rotation's vertical part (:func:`gyro_bias_cumsum`).
     """
     rep = StepReport("gyro")
     try:
-        o, sig_o = gyro_bias_cumsum(segs, rep.warnings)
+        o, sig_o = gyro_bias_cumsum(segs, rep.warnings, latitude_deg, rep.figures)
         bias_from = "rests (eqs. 34-35)"
     except FitError:
         o, sig_o, bias_from = None, None, None

@@ -67,13 +67,16 @@ class BatchResult:
         }
 
 
-def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0, reduced: Sequence[Any] = ()) -> BatchResult:
+def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0, reduced: Sequence[Any] = (),
+              latitude_deg: float | None = None) -> BatchResult:
     """Calibrate gyro, accel and mag from raw logs of one unit (paper Sec. III).
 
     A sensor whose step cannot run (no mag in the logs, too few attitudes, no rest) is left out with
     a warning naming the step; a result without any sensor raises FitError. ``reduced``: the
     :class:`~onlinecal.batch.reduce.Reduction` of each long log whose kept stretches are among ``logs``
-    (:func:`~onlinecal.batch.reduce.read_reduced`), stated in ``meta.batch.reduced``.
+    (:func:`~onlinecal.batch.reduce.read_reduced`), stated in ``meta.batch.reduced``. ``latitude_deg``: where
+    the logs were recorded (a log's GPS, ``--latitude``): the gyro bias at rest without the Earth rotation's
+    vertical part (:func:`~onlinecal.batch.gyro.gyro_bias_cumsum`), as the filter told it reads its gyro.
     """
     rng = np.random.default_rng(seed)
     # Field readings without IMU samples (a long log's magnetometer sample outside its kept stretches,
@@ -164,7 +167,7 @@ def run_batch(logs: list[ImuData], g: float = G0, seed: int = 0, reduced: Sequen
         except FitError as e:
             warnings.append(f"mag: not aligned to the accelerometer ({e}); the two frames may differ")
     try:
-        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag_ref, rng, g)
+        gyro, steps["gyro"] = fit_gyroscope(segs, acc, mag_ref, rng, g, latitude_deg)
     except FitError as e:
         warnings.append(f"gyro step skipped: {e}")
     for st in steps.values():

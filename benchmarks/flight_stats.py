@@ -134,14 +134,31 @@ def wrong_bench(bench: Calibration | None) -> Calibration:
 
 def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10.0, rate: float = 200.0,
                config: UKFConfig | None = None, latitude: float | None = DEFAULT_LATITUDE_DEG,
-               declination: float = 0.0) -> FlightRun:
+               declination: float | None = None, gps: bool = False) -> FlightRun:
     """One flight, replayed cold (``start="cold"``), from the bench calibration (``"bench"``) or from a
     wrong one (``"wrongbench"``, :func:`wrong_bench`). The flight's gyro senses the Earth's rotation at
     ``latitude`` (deg; None: not at all); the bench session is the paper profile's, without it (as the
-    paper figures were set); the field's horizontal part ``declination`` deg east of true north."""
+    paper figures were set); the field's horizontal part ``declination`` deg east of true north (None: 0, with
+    ``gps`` the WMM's at the home). ``gps``: the flight is written as a .bin with its GPS position and the filter
+    is told what ``replay`` takes from such a log (onlinecal.io.position, onlinecal.place: the fix's latitude,
+    the World Magnetic Model's declination) on top of ``config``."""
     sim = simulate(profile, seed, duration=60.0 * minutes, imu_rate=rate, mag_rate=50.0,
                    latitude=DEFAULT_LATITUDE_DEG if latitude is None else latitude, earth_rate=latitude is not None,
-                   declination=declination)
+                   declination=declination, gps=gps)
+    if gps:
+        import tempfile
+
+        from onlinecal.io import write_log
+        from onlinecal.io.position import log_position
+        from onlinecal.place import config_at
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = f"{tmp}/flight.bin"
+            write_log(path, sim.data)
+            where = log_position(path)
+            if where is None:
+                raise RuntimeError(f"{path}: the simulated log's GPS position was not read back")
+            config, _ = config_at(where, where.describe(path), None, config)
     truth = sim.truth.calibration
     init = None if start == "cold" else bench_calibration(truth, seed)
     if start == "wrongbench":
@@ -325,6 +342,9 @@ def main() -> None:
                          "it takes the Earth's rotation out of the gyro (onlinecal.ukf.earth)")
     ap.add_argument("--declination-sigma", type=float, default=None,
                     help="with --filter-latitude: σ of the declination the filter assumes (deg; default the config's)")
+    ap.add_argument("--gps", action="store_true",
+                    help="the flights are written with their GPS position and the filter told what `replay` takes "
+                         "from such a log: the fix's latitude and the World Magnetic Model's declination")
     ap.add_argument("--summary-of", default=None, metavar="JSON",
                     help="print the summary of a --save file (a run stopped early: the seeds it completed)")
     args = ap.parse_args()
@@ -341,14 +361,16 @@ def main() -> None:
     config = UKFConfig(**over) if over else None
     print("# flights' gyro: " + ("no Earth rate (diagnostic)" if args.no_earth_rate else
           f"Earth rate at latitude {args.latitude:g}°") + "; bench sessions: paper profile, no Earth rate"
-          + ("; the filter is given the latitude" if args.filter_latitude else ""), flush=True)
+          + ("; the filter is given the latitude" if args.filter_latitude else "")
+          + ("; the flights' .bin carry their GPS position, the filter is told what replay reads from it" if args.gps
+             else ""), flush=True)
     runs = []
     # seeds outermost: a run stopped early still holds the same count for every profile and start
     for seed in range(args.start, args.start + args.seeds):
         for prof in args.profiles.split(","):
             for st in args.starts.split(","):
                 r = run_flight(prof, seed, st, args.minutes, args.rate, config,
-                               None if args.no_earth_rate else args.latitude)
+                               None if args.no_earth_rate else args.latitude, gps=args.gps)
                 runs.append(r)
                 print(f"{prof:10s} {st:5s} seed {seed:2d}: within 3σ {100 * r.coverage:5.1f} %, worst "
                       f"{np.abs(r.z).max():5.2f}σ ({NAMES[int(np.argmax(np.abs(r.z)))]}), NEES {r.nees:6.1f}/"

@@ -237,3 +237,16 @@ def test_simulate_gps_refusals(tmp_path: Path) -> None:
     assert r.returncode == 2 and "Earth's rotation" in r.stderr and "Traceback" not in r.stderr
     r = _cli("simulate", "--out", str(tmp_path / "p.csv"), "--profile", "multirotor", "--duration", "10", "--gps")
     assert r.returncode == 2 and "CSV" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("ext", [".bin", ".tlog", ".ulg"])
+def test_writers_refuse_a_position_that_is_not_one(tmp_path: Path, ext: str) -> None:
+    d = _still()
+    d.series["latitude"] = (np.array([0.5, 1.0]), np.array([47.0, 47.0]))
+    d.series["longitude"] = (np.array([0.5, 1.5]), np.array([8.0, 8.0]))
+    with pytest.raises(ValueError, match="share their times"):
+        write_log(tmp_path / f"a{ext}", d)
+    d.series["longitude"] = (np.array([0.5, 1.0]), np.array([8.0, 8.0]))
+    d.series["latitude"] = (np.array([0.5, 1.0]), np.array([47.0, 91.0]))
+    with pytest.raises(ValueError, match="latitude within"):
+        write_log(tmp_path / f"b{ext}", d)

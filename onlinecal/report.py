@@ -293,6 +293,12 @@ def write_report(out_dir: str | Any, logs: list[Any], command: str, batch: Any =
         if online.missing_motion:
             md += ["Motion still missing to excite every parameter:", ""]
             md += [f"- {m}" for m in online.missing_motion] + [""]
+        obs = (ocal.meta or {}).get("online", {}).get("observability") if ocal is not None else None
+        if obs:
+            from .ukf.vehicle import observability_text
+
+            md += ["What the data determined, what it did not, and the Earth's rotation:", ""]
+            md += [f"- {line}" for line in observability_text(obs)] + [""]
 
     # batch vs online
     ref_label = "batch" if bcal is not None else (init_label if init is not None else None)

@@ -174,6 +174,20 @@ def test_batch_vs_online_table_matches_the_two_jsons(session):
 
 
 @pytest.mark.slow
+def test_replay_report_says_what_the_data_determined(session):
+    """report.md carries the observability report of the calibration JSON, line for line (the same words as
+    the terminal), the Earth's rotation's line included."""
+    from onlinecal.ukf.vehicle import observability_text
+
+    d = session[0]
+    md = (d / "rr" / "report.md").read_text()
+    obs = json.loads((d / "o.json").read_text())["meta"]["online"]["observability"]
+    lines = observability_text(obs)
+    assert any("Earth's rotation" in line for line in lines)
+    for line in lines:
+        assert f"- {line}" in md
+
+
 def test_batch_report_says_the_filter_did_not_run(session):
     md = (session[0] / "rb" / "report.md").read_text()
     assert "Not run by this command" in md and "ukf_" not in md

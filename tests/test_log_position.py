@@ -164,7 +164,7 @@ def test_replay_takes_the_latitude_from_the_log(tmp_path: Path) -> None:
     with the same numbers give, value for value; the simulated field's declination is the one the replay is
     told; ``--latitude none`` turns it off; a fleet uses each log's own."""
     log = tmp_path / "f.tlog"
-    r = _cli("simulate", "--out", str(log), "--profile", "multirotor", "--seed", "5", "--duration", "60", "--gps")
+    r = _cli("simulate", "--out", str(log), "--profile", "multirotor", "--seed", "5", "--duration", "30", "--gps")
     assert r.returncode == 0, r.stderr
     truth = json.loads(Path(str(log) + ".truth.json").read_text())
     h = truth["field_world"]

@@ -377,7 +377,8 @@ def test_live_run_takes_the_latitude_from_the_vehicles_gps(tmp_path) -> None:
         results[name] = (json.loads(out.read_text())["meta"]["online"]["observability"]["earth_rate"],
                          run.out.read_text() + run.err.read_text(), snd.result)
     e, text, sent = results["gps"]
-    assert sent["gps"] > 0
+    assert sent["gps"] > 0 and sent["intervals"].get(24) == 1e6  # GPS_RAW_INT asked for at 1 Hz
+    assert 24 not in results["none"][2]["intervals"]  # --latitude none: not asked
     assert e["latitude_deg"] == pytest.approx(DEFAULT_LATITUDE_DEG, abs=1e-6)
     assert "GPS_RAW_INT on the link" in e["latitude_source"] and "WMM2020" in e["declination_source"]
     assert e["declination_deg"] == pytest.approx(field_decl, abs=1e-6)

@@ -58,6 +58,7 @@ import numpy as np
 from onlinecal.io.base import ImuData, LogError
 from onlinecal.io.mavlink import (
     ACC_UNIT,
+    GPS_RAW_INT_ID,
     GYRO_UNIT,
     HR_ACC,
     HR_GYRO,
@@ -108,6 +109,7 @@ class _Link:
         self.requests = 0
         self.next_request = now
         self.acked = False
+        self.gps_asked = False  # GPS_RAW_INT's interval asked (after RAW_IMU's ack: an ack names no message)
 
 
 def _int_bits(i: int) -> float:
@@ -267,11 +269,12 @@ class LiveSource:
                  reconnect_s: float = 2.0, timeout_s: float | None = None, duration_s: float | None = None,
                  acc_scale: float | None = None, gyro_scale: float | None = None,
                  mag_scale: float | None = None, imu: int = 0, source_system: int | None = None,
-                 source_component: int | None = None) -> None:
+                 source_component: int | None = None, ask_gps: bool = False) -> None:
         if not rate_hz >= 0 or not block_s > 0 or not reconnect_s > 0 or reorder_window < 0:
             raise ValueError("need rate_hz >= 0, block_s > 0, reconnect_s > 0, reorder_window >= 0")
         self.url = self.path = str(url)
         self.rate_hz = float(rate_hz)
+        self.ask_gps = bool(ask_gps) and self.rate_hz > 0  # GPS_RAW_INT at 1 Hz, once RAW_IMU's rate is acked
         self.block_s = float(block_s)
         self.reorder_window = int(reorder_window)
         self.reconnect_s = float(reconnect_s)
@@ -296,8 +299,8 @@ class LiveSource:
         self.warnings: list[str] = []
         self.stats: dict[str, Any] = dict(
             received=0, emitted=0, lost=0, mag=0, mag_uncertain=0, duplicates=0, reordered=0, dropped_late=0,
-            reconnects=0, ack=0, ack_result=None, interval_requests=0, heartbeats=0, ignored=0, bad_data=0,
-            clock_resets=0, resyncs=0, stop_reason=None)
+            reconnects=0, ack=0, ack_result=None, interval_requests=0, gps_requests=0, gps_ack_result=None,
+            heartbeats=0, ignored=0, bad_data=0, clock_resets=0, resyncs=0, stop_reason=None)
         self._mavutil = mavutil_v2()
         self._mavlink = self._mavutil.mavlink
         self._frames = RawImuFrames(self._mavlink)
@@ -594,6 +597,14 @@ class LiveSource:
             self.stats["interval_requests"] += 1
         elif link.requests >= _REQUEST_TRIES and not link.acked and now >= link.next_request:
             self._note("no COMMAND_ACK for SET_MESSAGE_INTERVAL: the RAW_IMU rate is the vehicle's own")
+        if self.ask_gps and link.acked and not link.gps_asked and link.vehicle is not None:
+            # the vehicle's position for the filter's Earth-rate settings (onlinecal run without --latitude);
+            # asked once per link, after RAW_IMU's answer so the two COMMAND_ACKs are not confused
+            sysid, compid = link.vehicle
+            mav.command_long_send(sysid, compid, MAV_CMD_SET_MESSAGE_INTERVAL, 0, float(GPS_RAW_INT_ID),
+                                  1_000_000, 0, 0, 0, 0, 0)
+            link.gps_asked = True
+            self.stats["gps_requests"] += 1
 
     def _handle(self, link: _Link, msg: Any) -> None:
         link.last_msg = time.monotonic()
@@ -636,7 +647,10 @@ class LiveSource:
             if link.vehicle == (msg.get_srcSystem(), msg.get_srcComponent()):
                 self.stats["heartbeats"] += 1
         elif typ == "COMMAND_ACK":
-            if msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and getattr(msg, "target_system", 0) in (0, 255):
+            if (msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and link.gps_asked
+                    and getattr(msg, "target_system", 0) in (0, 255)):
+                self.stats["gps_ack_result"] = int(msg.result)  # the answer to the GPS_RAW_INT request
+            elif msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and getattr(msg, "target_system", 0) in (0, 255):
                 link.acked = True
                 self.stats["ack"] += 1
                 self.stats["ack_result"] = int(msg.result)

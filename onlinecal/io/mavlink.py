@@ -57,6 +57,7 @@ MSG_ID = {
     "HIGHRES_IMU": _ml.MAVLINK_MSG_ID_HIGHRES_IMU,
 }
 IMU_MESSAGES = tuple(MSG_ID)
+GPS_RAW_INT_ID: int = _ml.MAVLINK_MSG_ID_GPS_RAW_INT  # the vehicle's GPS fix (onlinecal.io.position, run)
 # IMU instance of each message type (RAW_IMU and HIGHRES_IMU carry theirs in the ``id`` field).
 SCALED_INSTANCE = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
 HR_ACC = _ml.HIGHRES_IMU_UPDATED_XACC | _ml.HIGHRES_IMU_UPDATED_YACC | _ml.HIGHRES_IMU_UPDATED_ZACC

@@ -116,7 +116,8 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     3-D fix at its own times (time_usec: ``io.base.WRITE_EPOCH_US`` + t, a UNIX time), counted in ``gps``.
 
     Returns counts: ``sent`` (RAW_IMU packets written, duplicates included), ``samples``, ``dropped``,
-    ``reordered``, ``duplicated``, ``commands`` (COMMAND_LONGs answered), ``interval_us`` (the last
+    ``reordered``, ``duplicated``, ``commands`` (COMMAND_LONGs answered), ``intervals`` (message id → the
+    interval asked for it, µs), ``interval_us`` (the last
     interval asked for with SET_MESSAGE_INTERVAL, or None), ``peer`` (False if no peer turned up),
     ``param_sets`` (PARAM_SETs received) and ``params`` (the table).
     Raises LogError if the link cannot be opened.
@@ -128,7 +129,7 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     stats: dict[str, Any] = dict(counts)
     table: dict[str, float] = {} if params is None else params
     stats.update(sent=0, samples=int(rows.shape[0]), commands=0, interval_us=None, peer=True, param_sets=0,
-                 params=table, gps=0)
+                 params=table, gps=0, intervals={})
     fixes = gps_series(data)
     gps_rows = [] if fixes is None else list(zip(np.rint(fixes[0] * 1e6).astype(np.int64).tolist(),
                                                   np.rint(fixes[1] * 1e7).astype(np.int64).tolist(),
@@ -197,6 +198,7 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
             ok = msg.command == MAV_CMD_SET_MESSAGE_INTERVAL
             if ok:
                 stats["interval_us"] = float(msg.param2)
+                stats["intervals"][int(msg.param1)] = float(msg.param2)
             stats["commands"] += 1
             conn.mav.command_ack_send(
                 msg.command, mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_UNSUPPORTED,

@@ -121,12 +121,13 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
     ck, cal, duration_s = _start(checkpoint, resume, init, config, duration_s, out)
     from ..io.live import LiveSource
     opts = {"timeout_s": idle_timeout_s, **(source_options or {})}
+    wait_gps = ck is None and gps_wait_s > 0 and cal.config.latitude_deg is None
     src = LiveSource(url, rate_hz=rate_hz, duration_s=duration_s, acc_scale=acc_scale, gyro_scale=gyro_scale,
                      mag_scale=mag_scale, imu=imu, source_system=source_system, source_component=source_component,
-                     **opts)
+                     ask_gps=wait_gps, **opts)
     run = _LiveRun(url, cal, src, ck, checkpoint, rate_hz, duration_s, TraceCsv(trace_out, resume=ck is not None),
                    transform, out)
-    if ck is None and gps_wait_s > 0 and cal.config.latitude_deg is None:
+    if wait_gps:
         run.wait_for_gps(gps_wait_s, lambda c: OnlineCalibrator(init, c))
     if ck is not None:
         try:

@@ -63,7 +63,8 @@ def wmm_declination(lat_deg: float, lon_deg: float, year: float | None, alt_km: 
         model_sigma = float(res.calculate_uncertainty().d)
     except ValueError:  # a date without NOAA's error model (before 2015)
         model_sigma = DECLINATION_FLOOR_DEG
-    return Declination(float(res.d), max(DECLINATION_FLOOR_DEG, model_sigma), model_sigma,
+    # near the magnetic poles H → 0 and δD grows without bound; the filter's prior takes at most 180°
+    return Declination(float(res.d), min(180.0, max(DECLINATION_FLOOR_DEG, model_sigma)), model_sigma,
                        f"WMM{int(lo)}", float(year), note)
 
 

@@ -230,6 +230,8 @@ def test_wmm_undated_log_uses_today() -> None:
     assert d.note is not None and "not dated" in d.note and d.model in ("WMM2025",)
     with pytest.raises(ValueError, match="latitude"):
         wmm_declination(95.0, 0.0, 2024.0)
+    near_pole = wmm_declination(86.5, 160.0, 2024.0)  # H of a few µT near the north magnetic pole
+    assert 5.0 < near_pole.sigma_deg <= 180.0 and near_pole.sigma_deg == pytest.approx(near_pole.model_sigma_deg)
 
 
 def test_simulate_gps_refusals(tmp_path: Path) -> None:

@@ -453,8 +453,11 @@ def _ukf_config(a: argparse.Namespace) -> Any:
         raise UsageError(str(e)) from None
     _warn(warnings)
     for line in info:
-        if line.startswith("declination") and not hasattr(a, "declination"):
-            continue  # batch: the declination serves the filter only
+        if not hasattr(a, "declination"):  # batch: the vertical part of the rests' bias; no declination
+            if line.startswith("declination"):
+                continue
+            line = line.replace("the Earth's rotation is taken out of the gyro", "the Earth rotation's vertical part "
+                                "is taken out of the rests' gyro bias")
         print(f"onlinecal: {line}", file=sys.stderr)
     a._ukf_config_made = (config,)
     return config

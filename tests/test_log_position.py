@@ -193,6 +193,12 @@ def test_replay_takes_the_latitude_from_the_log(tmp_path: Path) -> None:
         for k in ("bias", "scale"):
             assert np.allclose(gps[s][k], out["hand"][s][k], rtol=0, atol=1e-12)
     assert not np.allclose(gps["gyro"]["bias"], out["off"]["gyro"]["bias"], rtol=0, atol=1e-6)
+    r = _cli("batch", str(log), "--json", str(tmp_path / "b.json"))
+    assert r.returncode in (0, 1, 4, 5), r.stderr
+    assert "vertical part is taken out of the rests' gyro bias" in r.stderr and "declination" not in r.stderr
+    removed = json.loads((tmp_path / "b.json").read_text())["meta"]["batch"]["steps"]["gyro"]["figures"][
+        "earth_rate_removed"]
+    assert removed["latitude_deg"] == pytest.approx(DEFAULT_LATITUDE_DEG, abs=1e-6)
     r = _cli("replay", str(log), "--init", "none", "--latitude", "none", "--declination", "2")
     assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     r = _cli("replay", str(log), "--init", "none", "--jobs", "1", "--json", str(tmp_path / "fleet.jsonl"))

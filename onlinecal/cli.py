@@ -803,15 +803,17 @@ def _add_latitude(p: argparse.ArgumentParser, from_logs: bool, declination: bool
                "allowance for it); none: not taken out even where a log has GPS" if from_logs else
                "default: the vehicle's GPS_RAW_INT fix if one arrives within the first 3 s of data (the filter "
                "starts then), else not known; none: not taken out, no wait")
+    what = ("the Earth's rotation is taken out of the gyro (its vertical part at once, the horizontal once a "
+            "magnetometer holds the heading)" if declination else
+            "the Earth rotation's vertical part is taken out of the rests' gyro bias (eqs. 34-35)")
     p.add_argument("--latitude", type=_latitude, default=None, metavar="DEG|none",
-                   help="where the vehicle is (degrees, north positive): the Earth's rotation is taken out of "
-                        f"the gyro (its vertical part at once, the horizontal once a magnetometer holds the "
-                        f"heading); {default}")
+                   help=f"where the vehicle is (degrees, north positive): {what}; {default}")
     if not declination:
         return
     p.add_argument("--declination", type=_declination_deg, default=None, metavar="DEG",
-                   help="with a latitude: the magnetic declination, east positive (e.g. from the World Magnetic "
-                        "Model at the log's position), taken as known to 1 deg; default: unknown, 0 ± 15 deg")
+                   help="with a latitude: the magnetic declination, east positive, taken as known to 1 deg; "
+                        "default: the World Magnetic Model's at the GPS fix (± max(1 deg, its own)), else unknown, "
+                        "0 ± 15 deg")
 
 
 def _degrees(what: str, limit: float, or_none: bool = False) -> Callable[[str], Any]:

@@ -552,12 +552,16 @@ def cmd_run(a: argparse.Namespace) -> int:
         raise UsageError(f"--init {a.init}: {e}") from None
     json_file = None if a.json == "-" else a.json
     try:
-        res = ukf.run_live(a.connect, init, config=_ukf_config(a), duration_s=a.duration, json_out=json_file,
+        # --declination without --latitude: for the vehicle's GPS fix, when it comes (run waits for it)
+        gps_decl = a.declination if a.latitude is None else None
+        config = None if gps_decl is not None else _ukf_config(a)
+        res = ukf.run_live(a.connect, init, config=config, duration_s=a.duration, json_out=json_file,
                            trace_out=a.trace,
                            checkpoint=a.checkpoint, checkpoint_every_s=a.checkpoint_every, resume=a.resume,
                            rate_hz=a.rate, apply=a.apply, transform=live_transform(init),
                            idle_timeout_s=a.idle_timeout or None, source_system=a.sysid, source_component=a.compid,
-                           gps_wait_s=LIVE_GPS_WAIT_S if a.latitude is None else 0.0, **_scales(a))
+                           gps_wait_s=LIVE_GPS_WAIT_S if a.latitude is None else 0.0, gps_declination=gps_decl,
+                           **_scales(a))
         if init is not None and init.extensions and not res.calibration.extensions:
             res.calibration = res.calibration.replace(extensions=init.extensions)
     except ImportError as e:

@@ -359,7 +359,7 @@ def test_live_run_takes_the_latitude_from_the_vehicles_gps(tmp_path) -> None:
     field_decl = float(np.degrees(np.arctan2(h[0], h[1])))
     duration = float(sim.data.t_imu[-1] - sim.data.t_imu[0]) - 0.005
     results = {}
-    for name, extra in (("gps", []), ("none", ["--latitude", "none"])):
+    for name, extra in (("gps", []), ("none", ["--latitude", "none"]), ("decl", ["--declination", "-7.5"])):
         port = free_port()
         out = tmp_path / f"{name}.json"
         run = Run(tmp_path, name, "--connect", f"udpin:127.0.0.1:{port}", "--json", str(out), "--duration",
@@ -385,3 +385,7 @@ def test_live_run_takes_the_latitude_from_the_vehicles_gps(tmp_path) -> None:
     assert "from the vehicle's GPS" in text
     e, text, _ = results["none"]
     assert e["latitude_deg"] is None and "GPS" not in text
+    e, text, _ = results["decl"]  # --declination alone: for the fix when it comes, ± 1°
+    assert e["latitude_deg"] == pytest.approx(DEFAULT_LATITUDE_DEG, abs=1e-6)
+    assert e["declination_deg"] == -7.5 and e["declination_sigma_deg"] == 1.0
+    assert e["declination_source"] == "--declination"

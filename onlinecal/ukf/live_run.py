@@ -84,7 +84,8 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
              source_options: dict[str, Any] | None = None, log: TextIO | None = None,
              transform: Callable[[ImuData], ImuData] | None = None, idle_timeout_s: float | None = 10.0,
              imu: int = 0, source_system: int | None = None,
-             source_component: int | None = None, gps_wait_s: float = 0.0) -> LiveResult:
+             source_component: int | None = None, gps_wait_s: float = 0.0,
+             gps_declination: float | None = None) -> LiveResult:
     """Calibrate online from the live link ``url`` until ``duration_s`` s of vehicle time (from the first
     sample, across resumes), or Ctrl-C / SIGTERM, which end the run cleanly with a result.
 
@@ -104,9 +105,9 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
     ``source_component``: the vehicle read when several send (default: the first vehicle HEARTBEAT's).
     ``gps_wait_s``: a new run whose ``config`` has no latitude holds the link's first blocks back until the
     vehicle's GPS_RAW_INT (or GLOBAL_POSITION_INT) gives a fix, or this many seconds of IMU data passed, and
-    then starts the filter told the fix's latitude and the World Magnetic Model's declination there
-    (:func:`onlinecal.place.config_at`) — or, without a fix, as it was (0: no wait, the default here; the
-    command line waits 3 s).
+    then starts the filter told the fix's latitude and ``gps_declination`` (deg, ± 1°) or else the World
+    Magnetic Model's declination there (:func:`onlinecal.place.config_at`) — or, without a fix, as it was
+    (0: no wait, the default here; the command line waits 3 s).
     A vehicle clock restart (reboot, also between a checkpoint and ``resume``) is a clock segment: the
     attitude restarts there, the calibration carries over, and the result names it in
     ``meta["online"]["segments"]``.
@@ -128,7 +129,7 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
     run = _LiveRun(url, cal, src, ck, checkpoint, rate_hz, duration_s, TraceCsv(trace_out, resume=ck is not None),
                    transform, out)
     if wait_gps:
-        run.wait_for_gps(gps_wait_s, lambda c: OnlineCalibrator(init, c))
+        run.wait_for_gps(gps_wait_s, lambda c: OnlineCalibrator(init, c), gps_declination)
     if ck is not None:
         try:
             src.resume_from(ck["source"])
@@ -194,12 +195,15 @@ class _LiveRun:
         self.t0 = time.perf_counter()
         self.gps_wait_s = 0.0
         self.make_cal: Callable[[UKFConfig], OnlineCalibrator] | None = None
+        self.gps_declination: float | None = None
         self.held: list[tuple[ImuData, dict[str, Any]]] = []  # blocks held back while waiting for a GPS fix
 
-    def wait_for_gps(self, wait_s: float, make_cal: Callable[[UKFConfig], OnlineCalibrator]) -> None:
+    def wait_for_gps(self, wait_s: float, make_cal: Callable[[UKFConfig], OnlineCalibrator],
+                     declination: float | None = None) -> None:
         """Hold the first blocks back until the link gives a GPS fix or ``wait_s`` s of data passed; the
-        calibrator is then made anew by ``make_cal`` with the fix's place (:meth:`_release`)."""
-        self.gps_wait_s, self.make_cal = float(wait_s), make_cal
+        calibrator is then made anew by ``make_cal`` with the fix's place and ``declination`` (None: the
+        WMM's) (:meth:`_release`)."""
+        self.gps_wait_s, self.make_cal, self.gps_declination = float(wait_s), make_cal, declination
 
     def _offer(self, block: ImuData, pos: dict[str, Any]) -> bool:
         """:meth:`_take`, or hold the block while waiting for a GPS fix."""
@@ -222,7 +226,7 @@ class _LiveRun:
             from ..place import config_at
 
             source = f"the vehicle's GPS ({where.source}; {where.n_fixes} fix{'es' if where.n_fixes != 1 else ''})"
-            config, info = config_at(where, source, None, self.cal.config)
+            config, info = config_at(where, source, self.gps_declination, self.cal.config)
             self.cal = self.make_cal(config)
             print(f"onlinecal run: latitude {where.latitude_deg:.4f}° from {source}: the Earth's rotation is taken "
                   "out of the gyro (--latitude none: not)", file=self.out, flush=True)

@@ -204,8 +204,9 @@ def decimal_year(unix_s: float) -> float:
     return t.year + (t - y0).total_seconds() / (y1 - y0).total_seconds()
 
 
-def gps_series(data: ImuData) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(t s, latitude deg, longitude deg) of ``data.series`` "latitude"/"longitude" for a writer, or None when
+def gps_fixes(data: ImuData) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``data.series`` "latitude"/"longitude" (deg) as every writer stores a fix: (t µs, latitude 1e-7 deg,
+    longitude 1e-7 deg), int64 each (MAVLink GPS_RAW_INT, DataFlash format ``L``, PX4's lat/lon), or None when
     the data has no position. Raises ValueError where they are not one time line of finite values."""
     if "latitude" not in data.series or "longitude" not in data.series:
         return None
@@ -216,7 +217,10 @@ def gps_series(data: ImuData) -> tuple[np.ndarray, np.ndarray, np.ndarray] | Non
     if t.size and (not np.all(np.isfinite(t)) or t.min() < 0 or np.abs(lat).max() > 90 or np.abs(lon).max() > 180):
         raise ValueError("a GPS position needs finite, non-negative times and a latitude within ±90°, "
                          "a longitude within ±180°")
-    return (t, lat, lon) if t.size else None
+    if not t.size:
+        return None
+    us, lat_e7, lon_e7 = (np.rint(x * k).astype(np.int64) for x, k in ((t, 1e6), (lat, 1e7), (lon, 1e7)))
+    return us, lat_e7, lon_e7
 
 
 class LogReader(Protocol):

@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from onlinecal.io.base import GPS_EPOCH_UNIX_S, WRITE_EPOCH_US, ImuData, LogError, gps_series
-from onlinecal.io.dfparse import DataflashParser, Records
+from onlinecal.io.base import GPS_EPOCH_UNIX_S, WRITE_EPOCH_US, ImuData, LogError, gps_fixes
+from onlinecal.io.dfparse import FORMAT_CHARS, DataflashParser, Records
 from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
 HEAD = b"\xa3\x95"
@@ -51,9 +51,7 @@ BAT_FORMAT = ("BAT", "QBfffff", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot")
 CTUN_FORMAT = ("CTUN", "Qfff", "TimeUS,ThI,ThO,ThH")
 # the position (ImuData.series "latitude"/"longitude", deg; read back by onlinecal.io.position), ArduPilot 4.x's GPS
 GPS_FORMAT = ("GPS", "QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U")
-# DataFlash format characters (the writer's; dfparse.FORMAT_CHARS is the reader's)
-_NP = {"Q": "<u8", "q": "<i8", "B": "u1", "b": "i1", "M": "u1", "f": "<f4", "d": "<f8", "I": "<u4", "i": "<i4",
-       "H": "<u2", "h": "<i2", "n": "S4", "N": "S16", "Z": "S64", "c": "<i2", "L": "<i4", "e": "<i4"}
+_NP = {c: t for c, (t, _) in FORMAT_CHARS.items()}  # DataFlash format character → numpy type, as dfparse reads it
 _IMU_FIELDS = ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ")
 _OLD_NAMES = {"IMU2": ("IMU", 1), "IMU3": ("IMU", 2), "MAG2": ("MAG", 1), "MAG3": ("MAG", 2)}
 _READ = ["IMU", "IMU2", "IMU3", "MAG", "MAG2", "MAG3", "PARM", "BAT", "CURR", "CTUN", "RCOU", "ARM", "EV"]
@@ -367,17 +365,16 @@ def write_dataflash(path: str | Path, data: ImuData) -> None:
             rec["TimeUS"] = np.rint(ts * 1e6).astype(np.uint64)
             rec[col] = xs
             kinds.append((mid, fmt, rec))
-    gps = gps_series(data)
+    gps = gps_fixes(data)
     if gps is not None:
-        ts, lat, lon = gps
-        rec = np.zeros(ts.size, _record_dtype(GPS_FORMAT[1], GPS_FORMAT[2]))
+        us, lat, lon = gps
+        rec = np.zeros(us.size, _record_dtype(GPS_FORMAT[1], GPS_FORMAT[2]))
         rec["h1"], rec["h2"], rec["id"] = HEAD[0], HEAD[1], GPS_ID
-        rec["TimeUS"] = np.rint(ts * 1e6).astype(np.uint64)
+        rec["TimeUS"] = us
         rec["Status"], rec["NSats"], rec["HDop"], rec["U"] = 3, 12, 80, 1  # a 3-D fix (HDop c: 0.8)
-        gps_ms = np.rint((WRITE_EPOCH_US * 1e-6 - GPS_EPOCH_UNIX_S + ts) * 1e3).astype(np.int64)  # GPS time
+        gps_ms = np.rint((WRITE_EPOCH_US * 1e-6 - GPS_EPOCH_UNIX_S + us * 1e-6) * 1e3).astype(np.int64)  # GPS time
         rec["GWk"], rec["GMS"] = gps_ms // 604_800_000, gps_ms % 604_800_000
-        rec["Lat"] = np.rint(lat * 1e7).astype(np.int32)  # format L: 1e-7 deg
-        rec["Lng"] = np.rint(lon * 1e7).astype(np.int32)
+        rec["Lat"], rec["Lng"] = lat, lon  # format L: 1e-7 deg
         kinds.append((GPS_ID, GPS_FORMAT, rec))
     # Merge by time (IMU first on ties, then MAG, then the series): scatter the record arrays into one buffer.
     t = np.concatenate([r["TimeUS"] for _, _, r in kinds])

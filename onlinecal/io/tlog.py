@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from onlinecal.io.base import WRITE_EPOCH_US, ImuData, LogError, gps_series
+from onlinecal.io.base import WRITE_EPOCH_US, ImuData, LogError, gps_fixes
 from onlinecal.io.mavlink import ACC_UNIT, GYRO_UNIT, IMU_MESSAGES, MAG_UNIT, SCALED_INSTANCE, mavutil_v2
 from onlinecal.io.validate import LOOKAHEAD, BlockAssembler, SampleFilter, check_file, probe_head
 
@@ -332,11 +332,9 @@ def write_tlog(path: str | Path, data: ImuData, system_id: int = 1) -> None:
                 status.append((us_s, mav.sys_status_encode(0, 0, 0, 0, 0, int(np.clip(round(x * 100), -1, 32767)),
                                                            -1, 0, 0, 0, 0, 0, 0) if key == "current"
                                else mav.vfr_hud_encode(0, 0, 0, int(np.clip(round(x * 100), 0, 65535)), 0, 0)))
-    gps = gps_series(data)
+    gps = gps_fixes(data)
     if gps is not None:  # GPS_RAW_INT with a 3-D fix (read back by onlinecal.io.position)
-        for us_s, la, lo in zip(np.rint(gps[0] * 1e6).astype(np.int64).tolist(),
-                                np.rint(gps[1] * 1e7).astype(np.int64).tolist(),
-                                np.rint(gps[2] * 1e7).astype(np.int64).tolist(), strict=True):
+        for us_s, la, lo in zip(*(x.tolist() for x in gps), strict=True):
             status.append((us_s, mav.gps_raw_int_encode(us_s, 3, la, lo, 0, 80, 120, 0, 0, 12)))
     status.sort(key=lambda e: e[0])
     js = 0

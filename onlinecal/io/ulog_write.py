@@ -27,11 +27,12 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from onlinecal.io.base import WRITE_EPOCH_US, ImuData, gps_series
+from onlinecal.io.base import WRITE_EPOCH_US, ImuData, gps_fixes
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 ULOG_VERSION = 1
@@ -121,10 +122,10 @@ def _records(name: str, usec: NDArray[np.int64], xyz: NDArray[np.float64],
     return rec.view(np.uint8).reshape(usec.size, dt.itemsize)
 
 
-def _series_records(name: str, usec: NDArray[np.int64], x: NDArray[np.float64],
-                    lon: NDArray[np.float64] | None = None) -> NDArray[np.uint8]:
+def _series_records(name: str, usec: NDArray[np.int64], x: NDArray[Any],
+                    lon: NDArray[np.int64] | None = None) -> NDArray[np.uint8]:
     """(K, 3 + record size) bytes of a series topic: current_a, control[3] (the throttle), or a GPS fix
-    (``x`` the latitude, ``lon`` the longitude, deg)."""
+    (``x`` the latitude, ``lon`` the longitude, 1e-7 deg: :func:`onlinecal.io.base.gps_fixes`)."""
     fields = SERIES_TOPICS[name]
     dt = np.dtype([("msg_size", "<u2"), ("msg_type", "u1"), ("msg_id", "<u2")] + [(fn, nt) for _, nt, fn in fields])
     rec = np.zeros(usec.size, dt)
@@ -132,9 +133,8 @@ def _series_records(name: str, usec: NDArray[np.int64], x: NDArray[np.float64],
     rec["msg_type"] = ord("D")
     rec["msg_id"] = _MSG_ID[name]
     rec["timestamp"] = usec
-    if name == "vehicle_gps_position":
-        rec["lat"] = np.rint(x * 1e7).astype(np.int32)
-        rec["lon"] = np.rint(np.asarray(lon) * 1e7).astype(np.int32)
+    if name == "vehicle_gps_position":  # x, lon: 1e-7 deg (io.base.gps_fixes)
+        rec["lat"], rec["lon"] = x, lon
         rec["fix_type"] = 3
         rec["time_utc_usec"] = WRITE_EPOCH_US + usec  # the UTC time the receiver reports
     elif name == "battery_status":
@@ -175,9 +175,9 @@ def write_ulog(path: str | Path, data: ImuData, sys_name: str = "onlinecal simul
         us = _usec(np.asarray(ts, np.float64), SERIES_OF[name])
         parts.append(_series_records(name, us, np.asarray(xs, np.float64)))
         stamps.append(us)
-    gps = gps_series(data)
+    gps = gps_fixes(data)
     if gps is not None:
-        us = _usec(gps[0], "GPS")
+        us = gps[0]
         parts.append(_series_records("vehicle_gps_position", us, gps[1], gps[2]))
         stamps.append(us)
         series.append("vehicle_gps_position")

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from onlinecal.io.base import WRITE_EPOCH_US, ImuData, LogError, gps_series
+from onlinecal.io.base import WRITE_EPOCH_US, ImuData, LogError, gps_fixes
 from onlinecal.io.mavlink import (
     ACC_UNIT,
     GYRO_UNIT,
@@ -130,10 +130,8 @@ def send_session(data: ImuData, url: str, rate_scale: float = 0.0, drop: float =
     table: dict[str, float] = {} if params is None else params
     stats.update(sent=0, samples=int(rows.shape[0]), commands=0, interval_us=None, peer=True, param_sets=0,
                  params=table, gps=0, intervals={})
-    fixes = gps_series(data)
-    gps_rows = [] if fixes is None else list(zip(np.rint(fixes[0] * 1e6).astype(np.int64).tolist(),
-                                                  np.rint(fixes[1] * 1e7).astype(np.int64).tolist(),
-                                                  np.rint(fixes[2] * 1e7).astype(np.int64).tolist(), strict=True))
+    fixes = gps_fixes(data)
+    gps_rows = [] if fixes is None else list(zip(*(x.tolist() for x in fixes), strict=True))
     gi = 0
     stop = stop_event or threading.Event()
     try:

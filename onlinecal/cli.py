@@ -444,21 +444,21 @@ def _ukf_config(a: argparse.Namespace) -> Any:
     cached = getattr(a, "_ukf_config_made", None)
     if cached is not None:
         return cached[0]
-    from .place import earth_rate_config
+    from .place import TAKEN_OUT, earth_rate_config, told_line
 
     try:
-        config, info, warnings = earth_rate_config(getattr(a, "latitude", None), getattr(a, "declination", None),
-                                                   list(getattr(a, "logs", None) or []))
+        config, source, declination_line, warnings = earth_rate_config(
+            getattr(a, "latitude", None), getattr(a, "declination", None), list(getattr(a, "logs", None) or []))
     except ValueError as e:
         raise UsageError(str(e)) from None
     _warn(warnings)
-    for line in info:
-        if not hasattr(a, "declination"):  # batch: the vertical part of the rests' bias; no declination
-            if line.startswith("declination"):
-                continue
-            line = line.replace("the Earth's rotation is taken out of the gyro", "the Earth rotation's vertical part "
-                                "is taken out of the rests' gyro bias")
-        print(f"onlinecal: {line}", file=sys.stderr)
+    batch = not hasattr(a, "declination")  # batch: the vertical part of the rests' bias; no declination
+    if source is not None:
+        effect = ("the Earth rotation's vertical part is taken out of the rests' gyro bias (--latitude none: not)"
+                  if batch else TAKEN_OUT)
+        print(f"onlinecal: {told_line(config.latitude_deg, source, effect)}", file=sys.stderr)
+    if declination_line is not None and not batch:
+        print(f"onlinecal: {declination_line}", file=sys.stderr)
     a._ukf_config_made = (config,)
     return config
 

@@ -117,8 +117,9 @@ def process_log(path: str, init: str | dict[str, Any] | None = "batch", scales: 
         if gps:
             from .place import earth_rate_config
 
-            config, _info, place_notes = earth_rate_config(None, None, [path])
-            warnings += place_notes
+            setting = earth_rate_config(None, None, [path])
+            config = setting.config
+            warnings += setting.warnings
         if init == "batch":
             b = run_batch([d], g=g, latitude_deg=None if config is None else config.latitude_deg)
             from .health import filter_start

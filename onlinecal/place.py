@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import datetime as _dt
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 from onlinecal.io.base import decimal_year
 
+# what the filter does with a latitude, said after where it came from (replay and run alike)
+TAKEN_OUT = "the Earth's rotation is taken out of the gyro (--latitude none: not)"
 DECLINATION_FLOOR_DEG = 1.0  # crustal anomalies and the vehicle's own field: what --declination promises
 # (first year, last year, pygeomag coefficient file): NOAA's releases, each valid five years
 _WMM = ((2010.0, 2015.0, "wmm/WMM_2010.COF"), (2015.0, 2020.0, "wmm/WMM_2015v2.COF"),
@@ -68,63 +70,72 @@ def wmm_declination(lat_deg: float, lon_deg: float, year: float | None, alt_km: 
                        f"WMM{int(lo)}", float(year), note)
 
 
+class EarthRateSetting(NamedTuple):
+    """What :func:`earth_rate_config` decided: ``config`` (a UKFConfig, or None for the defaults); ``source``
+    where the latitude came from when it came from the logs (None: ``--latitude`` or none at all);
+    ``declination_line`` the World Magnetic Model's declination in words, where it was used; ``warnings``."""
+
+    config: Any
+    source: str | None
+    declination_line: str | None
+    warnings: list[str]
+
+
+def told_line(latitude_deg: float, source: str, effect: str = TAKEN_OUT) -> str:
+    """The line that says where a latitude came from and what is done with it."""
+    return f"latitude {latitude_deg:.4f}° from {source}: {effect}"
+
+
 def earth_rate_config(latitude: float | str | None, declination: float | None,
-                      paths: list[str] | None) -> tuple[Any, list[str], list[str]]:
+                      paths: list[str] | None) -> EarthRateSetting:
     """The filter's configuration for the Earth's rotation, from the command line and the logs:
     ``latitude`` a number (``--latitude``), "none" (off) or None (the logs' GPS); ``declination`` a number
     (``--declination``, ± 1°) or None (the WMM at the logs' fix, where they have one; else unknown, 0 ± 15°).
 
-    Returns (UKFConfig or None, info lines saying what was used, warnings). Raises ValueError where the
-    options cannot be honoured (a declination without any latitude)."""
+    Raises ValueError where the options cannot be honoured (a declination without any latitude)."""
     from onlinecal.ukf import UKFConfig
 
-    info: list[str] = []
-    warnings: list[str] = []
-    source: str | None = "--latitude"
-    where = None
     if latitude == "none":
         if declination is not None:
             raise ValueError("--declination places the Earth's rotation, which --latitude none turns off")
-        return None, info, warnings
+        return EarthRateSetting(None, None, None, [])
     if latitude is None and paths:
         from onlinecal.io.position import logs_place
 
         where, source, notes = logs_place(paths)
-        warnings += notes
-        latitude = None if where is None else where.latitude_deg
         if where is not None:
-            info.append(f"latitude {where.latitude_deg:.4f}° from {source}: the Earth's rotation is taken out of "
-                        "the gyro (--latitude none: not)")
+            config, line = config_at(where, source or "", declination, None)
+            return EarthRateSetting(config, source, line, notes)
+    else:
+        notes = []
     if latitude is None:
         if declination is not None:
             raise ValueError("--declination needs --latitude (it places the Earth's rotation, which needs the "
                              "latitude), or a log with a GPS fix")
-        return None, info, warnings
-    if where is not None:
-        config, more = config_at(where, source or "", declination, None)
-        return config, info + more, warnings
+        return EarthRateSetting(None, None, None, notes)
     extra: dict[str, Any] = {}
     if declination is not None:
         extra = {"declination_deg": float(declination), "declination_sigma_deg": DECLINATION_FLOOR_DEG}
-    return UKFConfig(latitude_deg=float(latitude), latitude_source=source, **extra), info, warnings
+    return EarthRateSetting(UKFConfig(latitude_deg=float(latitude), latitude_source="--latitude", **extra),
+                            None, None, [])
 
 
-def config_at(where: Any, source: str, declination: float | None, base: Any) -> tuple[Any, list[str]]:
+def config_at(where: Any, source: str, declination: float | None, base: Any) -> tuple[Any, str | None]:
     """``base`` (a UKFConfig; None: the defaults) told the position ``where`` (an io.position.LogPosition):
     its latitude, and ``declination`` (± 1°) or else the WMM's at the position and its date. Returns the config
-    and the info line about the declination."""
+    and, where the WMM gave the declination, its line in words."""
     from dataclasses import replace
 
     from onlinecal.ukf import UKFConfig
 
-    info: list[str] = []
+    line = None
     if declination is not None:
         extra: dict[str, Any] = {"declination_deg": float(declination),
                                  "declination_sigma_deg": DECLINATION_FLOOR_DEG, "declination_source": None}
     else:
         d = wmm_declination(where.latitude_deg, where.longitude_deg, where.year)
         extra = {"declination_deg": d.deg, "declination_sigma_deg": d.sigma_deg, "declination_source": d.describe()}
-        info.append(d.describe() + (f" ({d.note})" if d.note else f" (the log's date from {where.year_source})"))
+        line = d.describe() + (f" ({d.note})" if d.note else f" (the log's date from {where.year_source})")
     config = replace(base if base is not None else UKFConfig(), latitude_deg=float(where.latitude_deg),
                      latitude_source=source, **extra)
-    return config, info
+    return config, line

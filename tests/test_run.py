@@ -321,15 +321,14 @@ def test_set_params_protocol_edge_cases(paper) -> None:
     assert not rep["N" * 17]["ok"] and rep["N" * 17]["tries"] == 0
 
 
-def test_live_run_with_latitude_records_it(paper, tmp_path) -> None:
-    """``run --latitude``/``--declination`` over a real UDP link on 127.0.0.1 reach the filter: the result's
-    observability records them (session 12, onlinecal.ukf.earth), and the report line says so."""
+def _live_earth_rate(workdir: Path, name: str, data: ImuData, *args: str) -> tuple[dict, Run, dict]:
+    """``onlinecal run ARGS`` on a UDP port of 127.0.0.1 while the test vehicle streams ``data`` to it, for the
+    whole of ``data``: (the result's ``observability.earth_rate``, the run, the sender's counts)."""
     port = free_port()
-    data = paper.data.slice_imu(0, 3000)  # the gyro-bias rest and the first static positions
-    out = tmp_path / "lat.json"
+    out = workdir / f"{name}.json"
     duration = float(data.t_imu[-1] - data.t_imu[0]) - 0.005
-    run = Run(tmp_path, "lat", "--connect", f"udpin:127.0.0.1:{port}", "--init", str(paper.init), "--json", str(out),
-              "--duration", f"{duration}", "--latitude", "-33.9", "--declination", "12.5")
+    run = Run(workdir, name, "--connect", f"udpin:127.0.0.1:{port}", "--json", str(out), "--duration",
+              f"{duration}", *args)
     snd = None
     try:
         run.wait_for("link open")
@@ -340,7 +339,15 @@ def test_live_run_with_latitude_records_it(paper, tmp_path) -> None:
         if snd is not None:
             snd.finish()
     assert rc in (0, 4, 5), run.err.read_text()
-    e = json.loads(out.read_text())["meta"]["online"]["observability"]["earth_rate"]
+    return json.loads(out.read_text())["meta"]["online"]["observability"]["earth_rate"], run, snd.result
+
+
+def test_live_run_with_latitude_records_it(paper, tmp_path) -> None:
+    """``run --latitude``/``--declination`` over a real UDP link on 127.0.0.1 reach the filter: the result's
+    observability records them (session 12, onlinecal.ukf.earth), and the report line says so."""
+    data = paper.data.slice_imu(0, 3000)  # the gyro-bias rest and the first static positions
+    e, run, _ = _live_earth_rate(tmp_path, "lat", data, "--init", str(paper.init), "--latitude", "-33.9",
+                                 "--declination", "12.5")
     assert e["latitude_deg"] == pytest.approx(-33.9) and e["declination_deg"] == pytest.approx(12.5)
     assert e["declination_sigma_deg"] == pytest.approx(1.0) and e["heading_known"] is True
     assert "the Earth's rotation is taken out of the gyro at latitude -33.9°" in run.out.read_text()
@@ -357,25 +364,10 @@ def test_live_run_takes_the_latitude_from_the_vehicles_gps(tmp_path) -> None:
     sim = simulate("multirotor", 4, duration=12.0, imu_rate=100.0, mag_rate=50.0, gps=True)
     h = sim.truth.field_world
     field_decl = float(np.degrees(np.arctan2(h[0], h[1])))
-    duration = float(sim.data.t_imu[-1] - sim.data.t_imu[0]) - 0.005
     results = {}
     for name, extra in (("gps", []), ("none", ["--latitude", "none"]), ("decl", ["--declination", "-7.5"])):
-        port = free_port()
-        out = tmp_path / f"{name}.json"
-        run = Run(tmp_path, name, "--connect", f"udpin:127.0.0.1:{port}", "--json", str(out), "--duration",
-                  f"{duration}", *extra)
-        snd = None
-        try:
-            run.wait_for("link open")
-            snd = sending(sim.data, f"udpout:127.0.0.1:{port}", rate_scale=RATE_SCALE)
-            rc = run.wait()
-        finally:
-            run.kill()
-            if snd is not None:
-                snd.finish()
-        assert rc in (0, 4, 5), run.err.read_text()
-        results[name] = (json.loads(out.read_text())["meta"]["online"]["observability"]["earth_rate"],
-                         run.out.read_text() + run.err.read_text(), snd.result)
+        e, run, sent = _live_earth_rate(tmp_path, name, sim.data, *extra)
+        results[name] = (e, run.out.read_text() + run.err.read_text(), sent)
     e, text, sent = results["gps"]
     assert sent["gps"] > 0 and sent["intervals"].get(24) == 1e6  # GPS_RAW_INT asked for at 1 Hz
     assert 24 not in results["none"][2]["intervals"]  # --latitude none: not asked

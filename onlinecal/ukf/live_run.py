@@ -223,15 +223,14 @@ class _LiveRun:
             return False
         where = self.src.gps_position()
         if where is not None and self.make_cal is not None:
-            from ..place import config_at
+            from ..place import config_at, told_line
 
             source = f"the vehicle's GPS ({where.source}; {where.n_fixes} fix{'es' if where.n_fixes != 1 else ''})"
-            config, info = config_at(where, source, self.gps_declination, self.cal.config)
+            config, declination_line = config_at(where, source, self.gps_declination, self.cal.config)
             self.cal = self.make_cal(config)
-            print(f"onlinecal run: latitude {where.latitude_deg:.4f}° from {source}: the Earth's rotation is taken "
-                  "out of the gyro (--latitude none: not)", file=self.out, flush=True)
-            for line in info:
-                print(f"onlinecal run: {line}", file=self.out, flush=True)
+            for line in (told_line(where.latitude_deg, source), declination_line):
+                if line is not None:
+                    print(f"onlinecal run: {line}", file=self.out, flush=True)
         else:
             print(f"onlinecal run: no GPS fix on the link within {self.gps_wait_s:g} s of data: the Earth's rotation "
                   "is not taken out of the gyro (give --latitude)", file=self.out, flush=True)

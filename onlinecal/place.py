@@ -93,7 +93,7 @@ def earth_rate_config(latitude: float | str | None, declination: float | None,
     (``--declination``, ± 1°) or None (the WMM at the logs' fix, where they have one; else unknown, 0 ± 15°).
 
     Raises ValueError where the options cannot be honoured (a declination without any latitude)."""
-    from onlinecal.ukf import UKFConfig
+    from onlinecal.ukf.config import UKFConfig
 
     if latitude == "none":
         if declination is not None:
@@ -126,7 +126,7 @@ def config_at(where: Any, source: str, declination: float | None, base: Any) -> 
     and, where the WMM gave the declination, its line in words."""
     from dataclasses import replace
 
-    from onlinecal.ukf import UKFConfig
+    from onlinecal.ukf.config import UKFConfig
 
     line = None
     if declination is not None:

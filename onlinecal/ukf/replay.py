@@ -7,11 +7,14 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..io.base import ImuData, split_boundaries
 from ..model import Calibration
-from .filter import OnlineCalibrator, UKFConfig
+from .config import UKFConfig
+
+if TYPE_CHECKING:
+    from .filter import OnlineCalibrator
 
 
 @dataclass
@@ -63,6 +66,8 @@ def replay_stream(logs: Iterable[Iterable[ImuData]], init: Calibration | None = 
     """:func:`replay` over logs given as streams of blocks (e.g. ``open_log(p).blocks()``), so memory does
     not grow with a log's length: each block is fed and dropped. ``total``: the sample count reported to
     ``on_progress`` (0 when unknown)."""
+    from .filter import OnlineCalibrator  # the filter and its kernels load here, not with the package
+
     cal = OnlineCalibrator(init, config)
     t0 = time.perf_counter()
     log_s = 0.0

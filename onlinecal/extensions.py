@@ -50,7 +50,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
-from scipy.signal import savgol_filter
 
 from .effect_registry import ALL_EFFECTS, AXES, EFFECT_KEYS, EFFECTS, REQUIRED, SENSORS_OF, lever_arm_acceleration
 from .io.base import ImuData
@@ -186,6 +185,8 @@ def smoothed_derivative(t: Array, x: Array, window_s: float = SAVGOL_WINDOW_S) -
     w = max(5, int(round(window_s / dt)) | 1)
     if n < w:
         return np.gradient(x, t, axis=0)
+    from scipy.signal import savgol_filter  # here: scipy.signal takes ~1 s to import, and only this needs it
+
     return savgol_filter(x, w, 3, deriv=1, delta=dt, axis=0)
 
 

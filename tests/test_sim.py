@@ -134,3 +134,20 @@ def test_profile_spec_errors():
                 "multirotor:rest=10", "multirotor:vibration=-1"):
         with pytest.raises(ProfileError):
             parse_profile(bad)
+
+
+def test_motor_lag_is_scipys_first_order_filter():
+    # the motors' throttle lag (sim.effects._first_order_lag, compiled so a flight simulation does not import
+    # scipy.signal) against scipy.signal.lfilter with the same coefficients and initial state: the same bits,
+    # on a random series and on a throttle that steps between two levels
+    from scipy.signal import lfilter
+
+    from onlinecal.sim.effects import TAU_MOTOR_S, _first_order_lag
+
+    rng = np.random.default_rng(4)
+    a = 1e-3 / (TAU_MOTOR_S + 1e-3)
+    for u in (rng.uniform(0, 1, 20000), np.where(rng.uniform(size=20000) > 0.5, 0.7, 0.05)):
+        ref = lfilter([a], [1.0, a - 1.0], u, zi=[(1.0 - a) * u[0]])[0]
+        got = _first_order_lag(u, a)
+        assert np.array_equal(got, ref)
+        assert np.ptp(got) > 0.1  # it moved: the comparison is not of two constants

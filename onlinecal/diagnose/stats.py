@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import welch
 
 from .regressors import SUBCHANNELS, Design
 
@@ -73,6 +72,8 @@ def rest_stats(d: Design) -> dict[str, Any]:
         return {}
     x = s.w[iv.i0 : iv.i1]
     taus, devs = allan(x - x.mean(axis=0), s.rate)
+    from scipy.signal import welch  # here: scipy.signal takes ~1 s to import
+
     f, P = welch(x - x.mean(axis=0), fs=s.rate, nperseg=min(256, x.shape[0]), axis=0)
     bands = {}
     for lo, hi in ((0.0, 1.0), (1.0, 10.0), (10.0, s.rate / 2)):

@@ -36,6 +36,7 @@ from dataclasses import dataclass, fields, replace
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 # the one vocabulary (names, sensors, keys and defaults, inverse, UKF state) and the forward models production
@@ -704,15 +705,26 @@ SERIES_RATE_HZ = 10.0  # ArduPilot logs BAT and CTUN at 10 Hz (copter's 10-Hz lo
 TAU_MOTOR_S = 0.1
 
 
+@njit(cache=True)
+def _first_order_lag(u: Array, a: float) -> Array:  # pragma: no cover - numba
+    """y[n] = a·u[n] + (1 − a)·y[n−1] (N,), started at rest on u[0] (y[−1] = u[0]): scipy.signal.lfilter([a],
+    [1, a − 1], u, zi=[(1 − a)·u[0]]) in the same operations (the same bits; ``tests/test_sim.py``), without
+    importing scipy.signal (~1 s of every flight simulation's start)."""
+    y = np.empty_like(u)
+    z = (1.0 - a) * u[0]
+    for n in range(u.shape[0]):
+        y[n] = a * u[n] + z
+        z = -(a - 1.0) * y[n]
+    return y
+
+
 def motor_throttle(trajectory: Any, t: Array) -> Array:
     """The throttle the motors deliver at times t (N,) s: the trajectory's throttle command through a first-order
     lag of TAU_MOTOR_S on its integration grid, zero-order hold between grid points. This is what the current
     (and so the interference) follows; the simulator logs it as the throttle series as well."""
-    from scipy.signal import lfilter
-
     u = np.asarray(trajectory.throttle, float)
     a = float(trajectory.dt) / (TAU_MOTOR_S + float(trajectory.dt))  # backward-Euler discretisation
-    y = lfilter([a], [1.0, a - 1.0], u, zi=[(1.0 - a) * u[0]])[0] if u.size else u
+    y = _first_order_lag(u, a) if u.size else u
     k = np.clip(np.floor(np.asarray(t, float) / trajectory.dt).astype(np.intp), 0, max(u.size - 1, 0))
     out: Array = y[k]
     return out

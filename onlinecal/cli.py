@@ -444,7 +444,7 @@ def _ukf_config(a: argparse.Namespace) -> Any:
     cached = getattr(a, "_ukf_config_made", None)
     if cached is not None:
         return cached[0]
-    from .place import TAKEN_OUT, earth_rate_config, told_line
+    from .place import TAKEN_OUT, TAKEN_OUT_BATCH, earth_rate_config, told_line
 
     try:
         config, source, declination_line, warnings = earth_rate_config(
@@ -454,8 +454,7 @@ def _ukf_config(a: argparse.Namespace) -> Any:
     _warn(warnings)
     batch = not hasattr(a, "declination")  # batch: the vertical part of the rests' bias; no declination
     if source is not None:
-        effect = ("the Earth rotation's vertical part is taken out of the rests' gyro bias (--latitude none: not)"
-                  if batch else TAKEN_OUT)
+        effect = TAKEN_OUT_BATCH if batch else TAKEN_OUT
         print(f"onlinecal: {told_line(config.latitude_deg, source, effect)}", file=sys.stderr)
     if declination_line is not None and not batch:
         print(f"onlinecal: {declination_line}", file=sys.stderr)

@@ -20,6 +20,8 @@ from onlinecal.io.base import decimal_year
 
 # what the filter does with a latitude, said after where it came from (replay and run alike)
 TAKEN_OUT = "the Earth's rotation is taken out of the gyro (--latitude none: not)"
+# what the batch does with it (eqs. 34-35 at its rests)
+TAKEN_OUT_BATCH = "the Earth rotation's vertical part is taken out of the rests' gyro bias (--latitude none: not)"
 DECLINATION_FLOOR_DEG = 1.0  # crustal anomalies and the vehicle's own field: what --declination promises
 # (first year, last year, pygeomag coefficient file): NOAA's releases, each valid five years
 _WMM = ((2010.0, 2015.0, "wmm/WMM_2010.COF"), (2015.0, 2020.0, "wmm/WMM_2015v2.COF"),
@@ -99,6 +101,7 @@ def earth_rate_config(latitude: float | str | None, declination: float | None,
         if declination is not None:
             raise ValueError("--declination places the Earth's rotation, which --latitude none turns off")
         return EarthRateSetting(None, None, None, [])
+    notes: list[str] = []
     if latitude is None and paths:
         from onlinecal.io.position import logs_place
 
@@ -106,8 +109,6 @@ def earth_rate_config(latitude: float | str | None, declination: float | None,
         if where is not None:
             config, line = config_at(where, source or "", declination, None)
             return EarthRateSetting(config, source, line, notes)
-    else:
-        notes = []
     if latitude is None:
         if declination is not None:
             raise ValueError("--declination needs --latitude (it places the Earth's rotation, which needs the "

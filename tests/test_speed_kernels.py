@@ -7,6 +7,7 @@ import math
 import os
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +49,7 @@ def _random_block(rng: np.random.Generator, S: int = 81, Sd: int = 31, L: int = 
 
 @pytest.mark.parametrize("case", ["plain", "mag", "mag+extra", "fast-turns", "one-sample"])
 def test_propagate_kernel_equals_numpy(case):
-    rng = np.random.default_rng(hash(case) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(case.encode()))  # not hash(): salted per process
     X, R_nom, w, dt, c, dyn, gyro = _random_block(rng, big=case == "fast-turns", L=1 if case == "one-sample" else 20)
     c_mag = None if case == "plain" else c
     extra = rng.normal(0, 0.05, (dyn.size, w.shape[0], 3)) if case == "mag+extra" else None
@@ -231,7 +232,8 @@ def test_update_equals_unscented_update(case):
     from onlinecal.ukf import kernels_unscented as ku
     from onlinecal.ukf import unscented as un
 
-    rng = np.random.default_rng(abs(hash(case)) % 2**32)
+    # a seed fixed per case (hash() is salted per process: 11 draws in 3000 left the +5 reading inside the gate)
+    rng = np.random.default_rng(zlib.crc32(case.encode()))
     n = 40
     S = 2 * n + 1
     Wm, Wc = un.merwe_weights(n, 0.3, 2.0, 0.0)

@@ -299,6 +299,15 @@ def _ukf() -> Any:
     return ukf
 
 
+def _warm_kernels() -> None:
+    """Start compiling the filter's kernels in worker processes where numba's cache does not hold them yet
+    (onlinecal.ukf.warmup: a first run), so that it overlaps what the command does before the filter runs —
+    the batch, reading the logs, waiting for the link. Called once the command's input has been accepted."""
+    from .ukf import warmup
+
+    warmup.start()
+
+
 def online_health(res: Any, logs: Sequence[Any] | None = None, mag_start: str | None = None) -> dict[str, Any]:
     """Health of an online result (replay, run, fleet): NIS, events, observability, ranges, mag coverage.
     ``mag_start``: "file" (started from a calibration file), "batch" (from the batch of these logs), None."""
@@ -337,6 +346,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
         for p in a.logs:
             logs += _read_logs([p], a)
             pb.update()
+    _warm_kernels()
     init, batch = _initial(a, logs)
     from .apply_ext import prepare
 
@@ -379,6 +389,7 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
     from .ukf.replay import replay_stream
 
     readers = [open_log(p, **_scales(a)) for p in a.logs]  # every file checked before the work starts
+    _warm_kernels()
     label, logs, init = "init", None, None
     if a.init == "batch":
         from .batch import run_batch
@@ -550,6 +561,7 @@ def cmd_run(a: argparse.Namespace) -> int:
     except ValueError as e:
         raise UsageError(f"--init {a.init}: {e}") from None
     json_file = None if a.json == "-" else a.json
+    _warm_kernels()
     try:
         # --declination without --latitude: for the vehicle's GPS fix, when it comes (run waits for it)
         gps_decl = a.declination if a.latitude is None else None

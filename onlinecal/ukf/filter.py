@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from ..io.base import ImuData
 from ..model import SENSORS, Calibration
-from . import checkpoint, divergence
+from . import checkpoint, divergence, warmup
 from .attitude_init import ellipsoid_gn as ellipsoid_gn  # re-exported (older imports)
 from .blocks import SampleBuffer
 from .blocks import third_diff_var as third_diff_var  # re-exported
@@ -77,6 +77,9 @@ class OnlineCalibrator:
     """
 
     def __init__(self, init: Calibration | None = None, config: UKFConfig | None = None) -> None:
+        # a first run: the kernels compiled side by side in worker processes, and this one waits for them
+        # (.warmup; once per process, a look at the cache's index where it is warm)
+        warmup.ensure()
         self.config = config or UKFConfig()
         self.init = init
         c = self.config

@@ -7,7 +7,7 @@ under the same load, round by round. Valid for changes inside ``onlinecal/ukf`` 
 working tree's for both). Both copies sit in a temporary tree, so both compile their kernels at every run (a minute
 or two before the timing starts, after a warm-up replay of each; not timed).
 
-    PYTHONPATH=. python benchmarks/ab_ukf.py REV [--rounds 16] [--minutes 10]
+    PYTHONPATH=. python benchmarks/ab_ukf.py REV [--rounds 16] [--minutes 10] [--init none|truth]
 """
 
 from __future__ import annotations
@@ -45,6 +45,9 @@ def main() -> None:
     ap.add_argument("rev", help="the earlier commit (A)")
     ap.add_argument("--rounds", type=int, default=16)
     ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--init", choices=["none", "truth"], default="none",
+                    help="cold start (the benchmark's), or started from the flight's true calibration (the "
+                         "magnetometer used from the first block, as in a replay started from a batch or a file)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="ab_ukf_"))
     try:
@@ -54,14 +57,15 @@ def main() -> None:
             del sys.modules[m]
         sim = importlib.import_module("onlinecal.sim")
         A, B = importlib.import_module("onlinecal.ukf_a"), importlib.import_module("onlinecal.ukf")
-        d = sim.simulate("flight", 0, duration=60 * args.minutes, imu_rate=200).data
+        run = sim.simulate("flight", 0, duration=60 * args.minutes, imu_rate=200)
+        d, init = run.data, (run.truth.calibration if args.init == "truth" else None)
         for m in (A, B):
-            m.replay([d.slice_imu(0, 4000)], None)  # compile or load each copy's kernels
+            m.replay([d.slice_imu(0, 4000)], init)  # compile or load each copy's kernels
         times: dict[str, list[float]] = {"A": [], "B": []}
         for r in range(args.rounds):
             for k, m in (("A", A), ("B", B)) if r % 2 == 0 else (("B", B), ("A", A)):
                 c0 = time.process_time()
-                m.replay([d], None)
+                m.replay([d], init)
                 times[k].append(1e6 * (time.process_time() - c0) / d.n_imu)
         for k, what in (("A", f"{args.rev} (A)"), ("B", "working tree (B)")):
             t = times[k]

@@ -1,6 +1,7 @@
 """Bit-identity check of the online filter across code changes (issue 15's rounds: a speed change must keep the
 filter's arithmetic). Replays five logs and saves, or compares with a saved run, the final state x, covariance P,
-attitude R_nom, the events with their details, the NIS bookkeeping, the motion coverage and every trace row —
+attitude R_nom, the events with their details, the NIS bookkeeping, the motion coverage (rates, angles, flight time,
+the field cells swept and the rests' gravity directions) and every trace row —
 ``np.array_equal``, NaN-aware, not a tolerance.
 
 The logs: a cold 120-s flight whose vehicle detector switches on, the 10-min benchmark flight
@@ -53,7 +54,8 @@ def snapshot(cal: OnlineCalibrator) -> dict[str, Any]:
     cov = cal._coverage
     return {"x": cal.x.copy(), "P": cal.P.copy(), "R": cal.R_nom.copy(),
             "events": [(e["kind"], e["t"], e["detail"]) for e in cal.events], "nis": repr(cal._nis.stats),
-            "coverage": (cov.max_rate.copy(), cov.angle.copy(), cov.flight_s), "blocks": cal._n_blocks,
+            "coverage": (cov.max_rate.copy(), cov.angle.copy(), cov.flight_s, cov.mag_dirs.copy(),
+                         np.asarray(cov.rest_dirs, float)), "blocks": cal._n_blocks,
             "trace": [list(r.items()) for r in cal.trace_rows()]}
 
 

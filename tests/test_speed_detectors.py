@@ -290,7 +290,7 @@ def test_disturbance_gate_on_floats_judges_as_numpy() -> None:
         m_raw = np.linalg.solve(M_m[0], h_b) + o_m[0] + rng.normal(0, 1e-3 / x[sm][3], (5, 3))
         a_raw = np.linalg.solve(M_a[0], f_b) + o_a[0] + rng.normal(0, 1e-3, (20, 3))
         h_np = md.calibrated(x, "mag", m_raw.mean(axis=0))
-        h_py = md._calibrated3(x[sm].tolist(), m_raw.mean(axis=0).tolist())
+        h_py = md.calibrated_floats(x[sm].tolist(), m_raw.mean(axis=0).tolist())
         assert np.allclose(h_py, h_np, rtol=1e-12, atol=1e-12 * np.linalg.norm(h_np))
         for veh in (True, False):
             why = md.MagDisturbanceGate().judge(x, sig, m_raw, a_raw, 9.81, veh)

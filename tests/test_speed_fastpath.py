@@ -80,6 +80,12 @@ def _assert_same(a: OnlineCalibrator, b: OnlineCalibrator, rtol: float = 1e-9, r
     assert np.all(np.abs(sa - sb) <= rtol_P * sb)
     assert np.allclose(a.R_nom, b.R_nom, rtol=0, atol=1e-9)
     assert [(e["kind"], e["t"]) for e in a.events] == [(e["kind"], e["t"]) for e in b.events]
+    # the field cells swept (the fast path calibrates the block's field on Python floats) and the rests' gravity
+    # directions (unit vectors from the state, which the paths share to ~1e-9 of σ): the same cells, the same
+    # directions
+    assert np.array_equal(a._coverage.mag_dirs, b._coverage.mag_dirs)
+    assert len(a._coverage.rest_dirs) == len(b._coverage.rest_dirs)
+    assert np.allclose(a._coverage.rest_dirs, b._coverage.rest_dirs, rtol=0, atol=1e-8)
     for s in ("accel", "mag"):
         ma, mb = a.nis_summary()[s], b.nis_summary()[s]
         assert ma.get("updates") == mb.get("updates") and ma.get("rejected") == mb.get("rejected"), s
@@ -112,6 +118,7 @@ def test_paper_session_with_a_magnetic_disturbance_fast_path_equals_the_numpy_re
     assert n_fast["motion"] > 100 and n_fast["rest"] > 50
     kinds = [e["kind"] for e in ref.events]
     assert "mag_disturbance" in kinds, kinds
+    assert fast._coverage.mag_dirs.sum() >= 6  # the field coverage is exercised: the mag used from the start
     _assert_same(fast, ref)
 
 
@@ -510,3 +517,35 @@ def test_a_warm_up_s_bias_walk_reaches_the_fast_motion_step() -> None:
     assert any(e["kind"] == "bias_walk" for e in ref.events), ref.events
     assert fast._noise.q_walk > 0.0 and fast._noise.q_walk == pytest.approx(ref._noise.q_walk, rel=1e-9)
     _assert_same(fast, ref)
+
+
+def test_the_field_coverage_of_one_block_equals_the_general_form() -> None:
+    """The fast path's field coverage: the block's mean field calibrated on Python floats
+    (fastpath._field_dir) against start.calibrated's numpy (eq. 1) within 1e-13 relative, over states with
+    the paper's magnitudes of scale, angles and bias; and MotionCoverage.add_field_one marking the same cell
+    as add_field for 20 000 directions of any length, a zero and a NaN vector included."""
+    import warnings
+
+    from onlinecal.ukf.layout import SENSOR_SLICE
+    from onlinecal.ukf.start import calibrated
+    from onlinecal.ukf.vehicle import MotionCoverage
+
+    rng = np.random.default_rng(11)
+    cal = OnlineCalibrator(None)
+    sl = SENSOR_SLICE["mag"]
+    for _ in range(200):
+        x = cal.x.copy()
+        x[sl] = np.concatenate([rng.normal(0, 0.3, 3), rng.uniform(0.5, 3.0, 3), rng.normal(0, 0.05, 6)])
+        cal.x = x
+        m = rng.normal(0, 0.5, 3)
+        ref = calibrated(cal, "mag", m)
+        assert np.allclose(fastpath._field_dir(x, m), ref, rtol=1e-13, atol=1e-13 * float(np.linalg.norm(ref)))
+    H = rng.normal(size=(20000, 3)) * rng.uniform(1e-3, 10.0, (20000, 1))
+    H = np.vstack([H, np.zeros(3), [np.nan, 1.0, 0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # (add_field's 0/0 on the zero vector)
+        for h in H:
+            a, b = MotionCoverage(), MotionCoverage()
+            a.add_field(h)
+            b.add_field_one(h)
+            assert np.array_equal(a.mag_dirs, b.mag_dirs), h

@@ -53,8 +53,8 @@ from .kernels_propagate import _rodrigues_into, model_pair_kernel, propagate_ker
 from .kernels_unscented import _STATUS, _identity
 from .kernels_update import sigma_points_kernel, unscented_motion_kernel, update_kernel
 from .layout import DIP, SENSOR_SLICE
+from .magdisturb import calibrated_floats
 from .predict import interp_weights
-from .start import calibrated
 from .unscented import UpdateResult
 
 if TYPE_CHECKING:
@@ -617,7 +617,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
             if veh.active:  # (MotionCoverage.add_motion's flight time; its maxima and angles in the kernel)
                 cov.flight_s += dt_blk
             if use_mag:
-                cov.add_field(calibrated(cal, "mag", B.m_mean[b]))
+                cov.add_field_one(_field_dir(cal.x, B.m_mean[b]))
             _finish_motion(cal, st, x, P, [nis0, nis1], [st0, st1], solved == 1.0, Rs[1], fine == 1.0, use_acc,
                            has_mag, var_v, tl)
             return
@@ -636,7 +636,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     var_v = st.vehicle_accel_from_dev(cal, dev, dt_blk, tl)
     cal._coverage.add_motion(om, dt_blk, veh.active)
     if use_mag:
-        cal._coverage.add_field(calibrated(cal, "mag", B.m_mean[b]))
+        cal._coverage.add_field_one(_field_dir(cal.x, B.m_mean[b]))
     var_a = 0.0
     if use_acc:
         g = mod.gravity
@@ -648,6 +648,15 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
         hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
     _finish_motion(cal, st, x, P, nis.tolist(), status.tolist(), solved, R_new, fine, use_acc, has_mag, var_v, tl)
+
+
+def _field_dir(x: Array, m_mean: Array) -> Array:
+    """The block's mean mag reading m_mean (3,) raw, calibrated with the state x (n,), for the field coverage
+    (:meth:`.vehicle.MotionCoverage.add_field`: which of 26 cells it points into): eq. 1 on Python floats
+    (:func:`.magdisturb.calibrated_floats`) instead of :func:`.start.calibrated`'s numpy on one row (~40 µs a motion
+    block with the mag, the largest per-block Python of a replay started from a calibration). The same value to
+    rounding; only a direction within ~1e-16 of a cell boundary could fall into the other cell."""
+    return np.array(calibrated_floats(x[_M0 : _M0 + 12].tolist(), m_mean.tolist()))
 
 
 def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: list[float], codes: list[Any],

@@ -92,7 +92,7 @@ def calibrated(x: Array, sensor: str, raw_mean: Array) -> Array:
     return out
 
 
-def _calibrated3(p: list[float], raw: list[float]) -> tuple[float, float, float]:
+def calibrated_floats(p: list[float], raw: list[float]) -> tuple[float, float, float]:
     """:func:`calibrated` on Python floats: p the sensor's 12 terms (o, s, alpha, xi), raw (3,) a block
     mean; M (raw − o) with M = S T_R(alpha) T_N(xi) (eqs. 1–6, :func:`onlinecal.model.model_matrices`'s
     closed forms), applied as T_N, then T_R, then S."""
@@ -148,11 +148,11 @@ class MagDisturbanceGate:
         passes the 2 % norm test with its force 11° off the vertical).
 
         The arithmetic of :func:`calibrated`, :func:`norm_sigma` and :func:`dip_of` on Python floats
-        (:func:`_calibrated3`; issue 15: numpy's calls on 3-vectors were 18 % of a paper session's replay);
+        (:func:`calibrated_floats`; issue 15: numpy's calls on 3-vectors were 18 % of a paper session's replay);
         it agrees with them to rounding (tests/test_speed_detectors.py)."""
         sl, sa = SENSOR_SLICE["mag"], SENSOR_SLICE["accel"]
         pm = x[sl].tolist()
-        h = _calibrated3(pm, m_raw.mean(axis=0).tolist())
+        h = calibrated_floats(pm, m_raw.mean(axis=0).tolist())
         nh = math.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
         dev = nh - 1.0
         # norm_sigma: δ‖h‖ = ĥ·(M δ(m − o)), M ≈ diag(scale)
@@ -167,7 +167,7 @@ class MagDisturbanceGate:
             return f"field norm {1 + dev:.2f} of the model's 1 (tolerance ±{tol:.2f})"
         if not accel_is_gravity:
             return None
-        f = _calibrated3(x[sa].tolist(), a_raw.mean(axis=0).tolist())
+        f = calibrated_floats(x[sa].tolist(), a_raw.mean(axis=0).tolist())
         nf = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
         if abs(nf / gravity - 1.0) < STATIC_G:
             c = (h[0] * f[0] + h[1] * f[1] + h[2] * f[2]) / max(nh * nf, 1e-12)

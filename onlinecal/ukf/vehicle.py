@@ -214,6 +214,13 @@ class MotionCoverage:
         c = _CELLS @ (h / np.linalg.norm(h, axis=1, keepdims=True)).T  # (26, N)
         self.mag_dirs[np.unique(np.argmax(c, axis=0))] = 1.0
 
+    def add_field_one(self, h: Array) -> None:
+        """:meth:`add_field` for one direction h (3,), not necessarily unit (a block's calibrated mean field;
+        issue 15: the general form's numpy calls were ~20 µs a block): the cell with the largest cosine, which
+        is the cell of the largest dot product with h itself (a positive factor does not move the argmax; a
+        zero or NaN h marks cell 0, as :meth:`add_field`'s division does)."""
+        self.mag_dirs[int(np.argmax(_CELLS @ h))] = 1.0
+
     def gravity_axes(self) -> list[str]:
         """Body axes (±x, ±y, ±z) that gravity pointed along (within 30°) at some rest."""
         out = []

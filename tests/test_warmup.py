@@ -116,24 +116,26 @@ def test_warmup_from_an_empty_cache_leaves_nothing_to_compile(tmp_path):
             assert np.array_equal(np.asarray(there["sigma"][k]), np.asarray(v)), (s, "sigma", k)
 
 
-def test_a_failing_worker_is_reported_not_raised():
+def test_a_failing_worker_is_reported_not_raised(tmp_path):
     """A plan naming a kernel that does not exist: the worker answers with the error, wait() says False and the
-    report has the line; nothing is raised (the filter's process then compiles what it needs itself)."""
-    w = warmup.Warmup(((("fastpath:no_such_kernel",),),), ["fastpath:no_such_kernel"])
+    report has the line; nothing is raised (the filter's process then compiles what it needs itself). (Its own
+    lock file: another test process may be warming up the real cache just now.)"""
+    w = warmup.Warmup(((("fastpath:no_such_kernel",),),), ["fastpath:no_such_kernel"], tmp_path / "lock")
     ok = w.wait(120)
     assert ok is False
     assert any("no_such_kernel" in e for e in w.report["errors"]), w.report
     assert w.report["workers"] == 1 and w._done.is_set()
 
 
-def test_a_second_process_waits_for_the_one_compiling():
+def test_a_second_process_waits_for_the_one_compiling(tmp_path):
     """While another process holds the lock (here: this test, on the same lock file), a warm-up starts no
     worker: it waits until the lock is free, then returns with ``waited_for_other`` (the kernels are then
     in the cache, or compiled by the caller as before)."""
-    fh = warmup._lock_path().open("ab")
-    fcntl.flock(fh, fcntl.LOCK_EX)  # (blocking: another test process may be warming up the cache just now)
+    lock = tmp_path / "lock"
+    fh = lock.open("ab")
+    fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
     try:
-        w = warmup.Warmup(((("fastpath:no_such_kernel",),),), [])
+        w = warmup.Warmup(((("fastpath:no_such_kernel",),),), [], lock)
         released = threading.Timer(1.0, fh.close)
         t0 = time.monotonic()
         released.start()

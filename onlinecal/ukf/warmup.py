@@ -143,8 +143,10 @@ class Warmup:
     for, every function the worker compiled rather than loaded, seconds), ``errors`` (one line each),
     ``waited_for_other`` (another process was compiling), ``seconds`` (wall)."""
 
-    def __init__(self, plan: tuple[tuple[tuple[str, ...], ...], ...] = PLAN, todo: list[str] | None = None) -> None:
+    def __init__(self, plan: tuple[tuple[tuple[str, ...], ...], ...] = PLAN, todo: list[str] | None = None,
+                 lock_path: Path | None = None) -> None:
         self.plan = plan
+        self.lock_path = lock_path or _lock_path()  # (tests give their own: a real warm-up may hold the default)
         self.report: dict[str, Any] = {"started": list(todo or []), "workers": 0, "stages": [], "errors": [],
                                        "waited_for_other": False, "seconds": 0.0}
         self._t0 = time.perf_counter()
@@ -162,7 +164,7 @@ class Warmup:
         except ImportError:  # (Windows: no lock; the workers may then compile beside another process's)
             return True
         try:
-            fh = _lock_path().open("ab")
+            fh = self.lock_path.open("ab")
         except OSError:
             return True
         try:
@@ -177,7 +179,7 @@ class Warmup:
                 except OSError:
                     time.sleep(0.2)
             else:
-                self.report["errors"].append(f"another process held {_lock_path()} for {TIMEOUT_S:.0f} s")
+                self.report["errors"].append(f"another process held {self.lock_path} for {TIMEOUT_S:.0f} s")
             fh.close()
             return False
         self._lock_fh = fh

@@ -191,8 +191,11 @@ class Warmup:
                 return
             n = max(len(stage) for stage in self.plan)
             env = dict(os.environ)
-            root = str(Path(__file__).resolve().parents[2])  # the same package (and so the same cache keys)
-            env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+            root = Path(__file__).resolve().parents[2]
+            if root.name not in ("site-packages", "dist-packages"):
+                # a source tree, or one a program put on sys.path itself: the workers must compile these very
+                # files (numba's cache is kept per source file); an installed package they find as this one did
+                env["PYTHONPATH"] = str(root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
             for _ in range(n):
                 self._procs.append(subprocess.Popen(
                     [sys.executable, "-m", "onlinecal.ukf.warmup"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,

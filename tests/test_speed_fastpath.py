@@ -520,7 +520,8 @@ def test_a_warm_up_s_bias_walk_reaches_the_fast_motion_step() -> None:
 
 
 def test_the_field_coverage_of_one_block_equals_the_general_form() -> None:
-    """The fast path's field coverage: the block's mean field calibrated on Python floats
+    """The fast path's magnetometer weights (propagate.interp_weights_floats: the same bits as interp_weights
+    for up to 2L + 2 samples a block) and its field coverage: the block's mean field calibrated on Python floats
     (fastpath._field_dir) against start.calibrated's numpy (eq. 1) within 1e-13 relative, over states with
     the paper's magnitudes of scale, angles and bias; and MotionCoverage.add_field_one marking the same cell
     as add_field for 20 000 directions of any length, a zero and a NaN vector included."""
@@ -540,6 +541,14 @@ def test_the_field_coverage_of_one_block_equals_the_general_form() -> None:
         m = rng.normal(0, 0.5, 3)
         ref = calibrated(cal, "mag", m)
         assert np.allclose(fastpath._field_dir(x, m), ref, rtol=1e-13, atol=1e-13 * float(np.linalg.norm(ref)))
+    from onlinecal.ukf.propagate import interp_weights, interp_weights_floats
+
+    for L in (1, 5, 20, 40):  # the mag's interpolation weights on Python numbers: the same bits
+        for _ in range(100):
+            m = int(rng.integers(1, 2 * L + 3))
+            j = np.sort(rng.integers(1, L + 1, m))
+            frac = rng.random(m)
+            assert np.array_equal(interp_weights_floats(j.tolist(), frac.tolist(), L), interp_weights(j, frac, L))
     H = rng.normal(size=(20000, 3)) * rng.uniform(1e-3, 10.0, (20000, 1))
     H = np.vstack([H, np.zeros(3), [np.nan, 1.0, 0.0]])
     with warnings.catch_warnings():

@@ -54,7 +54,7 @@ from .kernels_unscented import _STATUS, _identity
 from .kernels_update import sigma_points_kernel, unscented_motion_kernel, update_kernel
 from .layout import DIP, SENSOR_SLICE
 from .magdisturb import calibrated_floats
-from .predict import interp_weights
+from .propagate import interp_weights_floats
 from .unscented import UpdateResult
 
 if TYPE_CHECKING:
@@ -573,7 +573,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     c_mag = _EMPTY1
     if has_mag:
         k0, n_m0 = B.mlo_l[b] - B.mlo_l[0], B.mhi_l[b] - B.mlo_l[b]
-        c_mag = interp_weights(B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0], L)
+        c_mag = interp_weights_floats(B.m_j[k0 : k0 + n_m0].tolist(), B.m_frac[k0 : k0 + n_m0].tolist(), L)
     t_last = cal._t_last
     assert t_last is not None  # (a motion step follows a filtered block)
     dt_blk = tl - t_last  # (the numpy subtraction's double)
@@ -650,13 +650,13 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     _finish_motion(cal, st, x, P, nis.tolist(), status.tolist(), solved, R_new, fine, use_acc, has_mag, var_v, tl)
 
 
-def _field_dir(x: Array, m_mean: Array) -> Array:
+def _field_dir(x: Array, m_mean: Array) -> tuple[float, float, float]:
     """The block's mean mag reading m_mean (3,) raw, calibrated with the state x (n,), for the field coverage
     (:meth:`.vehicle.MotionCoverage.add_field`: which of 26 cells it points into): eq. 1 on Python floats
     (:func:`.magdisturb.calibrated_floats`) instead of :func:`.start.calibrated`'s numpy on one row (~40 µs a motion
     block with the mag, the largest per-block Python of a replay started from a calibration). The same value to
     rounding; only a direction within ~1e-16 of a cell boundary could fall into the other cell."""
-    return np.array(calibrated_floats(x[_M0 : _M0 + 12].tolist(), m_mean.tolist()))
+    return calibrated_floats(x[_M0 : _M0 + 12].tolist(), m_mean.tolist())
 
 
 def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: list[float], codes: list[Any],

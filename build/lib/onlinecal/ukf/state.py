@@ -1,0 +1,221 @@
+"""The filter's state vector beyond the 40 base states of :mod:`.layout`: extensions and hold offsets, the
+Cholesky order that lets sigma points share the mean's attitude history, the consider (gauge) mask, and
+the prior a calibration (or a cold start) gives.
+
+* :class:`StateLayout` — names and slices of every state, the dynamic sigma points, the consider mask;
+* :func:`choose_gauge` — which sensor's terms define the body frame B (held as consider states);
+* :func:`prior` — prior mean and σ of the 40 base states from ``init``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..model import PARAMS, SENSORS, Calibration, SensorCalibration
+from .config import EXTENSIONS, UKFConfig
+from .layout import ATT, AXES, DIP, N_STATE, NAMES, SENSOR_SLICE, index
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class StateLayout:
+    """Names of the state (the 40 of :mod:`.layout`, then extensions, then hold offsets), the slices of
+    the extras, the Cholesky order (attitude-relevant states first) and the consider mask.
+
+    ``dyn_pts`` are the sigma points (of 2n + 1) that differ from the mean in a state the attitude depends
+    on (attitude, gyro terms, gyro extensions, the gyro hold offset): with the factor taken in ``perm``
+    order, every other point shares the mean's attitude history (:func:`.unscented.sigma_points`).
+    """
+
+    extra_states: tuple[str, ...] = ()
+    holds: tuple[str, ...] = ()
+    gauge: str | None = None
+    gauge_terms: tuple[str, ...] = ()
+    names: list[str] = field(init=False)
+    ext_slice: dict[str, slice] = field(init=False)
+    hold_slice: dict[str, slice] = field(init=False)
+    perm: NDArray[np.intp] = field(init=False)
+    perm_id: bool = field(init=False)
+    dyn_pts: NDArray[np.intp] = field(init=False)
+    consider: NDArray[np.bool_] = field(init=False)
+
+    def __post_init__(self) -> None:
+        names = list(NAMES)
+        self.ext_slice = {}
+        for e in self.extra_states:
+            s0 = len(names)
+            names += [f"ext.{e}.{a}" for a in AXES]
+            self.ext_slice[e] = slice(s0, s0 + 3)
+        self.hold_slice = {}
+        for s in self.holds:
+            s0 = len(names)
+            names += [f"hold.{s}.{a}" for a in AXES]
+            self.hold_slice[s] = slice(s0, s0 + 3)
+        self.names = names
+        n = len(names)
+        dyn = np.zeros(n, bool)
+        dyn[ATT] = True
+        dyn[SENSOR_SLICE["gyro"]] = True
+        for e, sl in self.ext_slice.items():
+            if EXTENSIONS[e][0] == "gyro":
+                dyn[sl] = True
+        if "gyro" in self.hold_slice:
+            dyn[self.hold_slice["gyro"]] = True  # a held gyro reading is integrated with its offset
+        self.perm = np.concatenate([np.flatnonzero(dyn), np.flatnonzero(~dyn)])
+        self.perm_id = bool(np.array_equal(self.perm, np.arange(n)))
+        nd = int(dyn.sum())
+        self.dyn_pts = np.concatenate([[0], np.arange(1, nd + 1), np.arange(n + 1, n + nd + 1)])
+        # Schmidt–Kalman consider states: the gauge sensor's terms (see choose_gauge)
+        self.consider = np.zeros(n, bool)
+        if self.gauge:
+            for p in self.gauge_terms:
+                self.consider[index(self.gauge, p)] = True
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    def with_hold(self, sensor: str) -> StateLayout:
+        """The same layout with the 3 hold-offset states of ``sensor`` appended."""
+        return StateLayout(self.extra_states, self.holds + (sensor,), self.gauge, self.gauge_terms)
+
+    def public(self) -> list[tuple[int, str]]:
+        """Calibration terms, dip and extensions (attitude and hold offsets are nuisance states)."""
+        return [(i, nm) for i, nm in enumerate(self.names) if i >= 3 and not nm.startswith("hold.")]
+
+
+def batch_gyro_from_phases(init: Calibration | None) -> bool:
+    """Whether ``init``'s B is the platform's rotation axes as its gyro measured them (``gauge`` field
+    "gyro_phases", set by the batch's phase method), with a gyro to hold."""
+    return init is not None and init.gauge == "gyro_phases" and init.gyro is not None
+
+
+def choose_gauge(init: Calibration | None, config: UKFConfig) -> tuple[str | None, tuple[str, ...]]:
+    """The sensor whose terms define B and which terms are held (consider states).
+
+    A common rotation of the body frame (every sensor's T_R turned by the same Q, the attitude by Qᵀ)
+    leaves every measurement unchanged, so nothing in the data fixes it: B is defined by the prior. Left
+    free, a filter linearised at moving estimates gains spurious information along it and drifts (seen in
+    cold starts: all three alphas off by the same degrees at 40σ). Holding one sensor's alpha at its prior
+    (with its prior σ, as a consider parameter) pins B to that sensor's frame as given by ``init`` (the
+    batch's B) or to the sensor itself on a cold start. The batch defines B by the platform's three
+    rotation axes as the gyro measured them (its phases): that fixes the gyro's alpha *and* xi in B, so for
+    such an init both are held.
+
+    Sensor: ``config.gauge_sensor``; for "auto" the gyro of a batch init whose gyro came from its phases,
+    else the init sensor with the tightest alpha σ, else the accelerometer. Terms: ``config.gauge_terms``;
+    for "auto" alpha and xi for a phase-based batch gyro, else alpha.
+    """
+    phases = batch_gyro_from_phases(init)
+    g = config.gauge_sensor
+    if g == "auto":
+        g = "gyro" if phases else _tightest_alpha(init)
+    t = config.gauge_terms
+    if t == "auto":
+        terms: tuple[str, ...] = ("alpha", "xi") if g == "gyro" and phases else ("alpha",)
+    else:
+        terms = tuple(t.split("+"))
+    return g, terms
+
+
+def _tightest_alpha(init: Calibration | None) -> str:
+    best, best_s = "accel", math.inf
+    if init is not None:
+        for s in SENSORS:
+            cal = init.sensor(s)
+            if cal is None or "alpha" not in cal.sigma:
+                continue
+            v = float(np.mean(np.asarray(cal.sigma["alpha"], float)))
+            if np.isfinite(v) and v < best_s:
+                best, best_s = s, v
+    return best
+
+
+def given_sigma(cal: SensorCalibration) -> Array:
+    """The 12 σ (bias, scale, alpha, xi) a calibration carries, NaN where it has none."""
+    out = []
+    for p in PARAMS:
+        v = np.asarray(cal.sigma.get(p, np.full(3, np.nan)), float).reshape(-1)
+        out.append(v if v.shape == (3,) else np.full(3, np.nan))
+    sig = np.concatenate(out)
+    return np.where(np.isfinite(sig) & (sig > 0), sig, np.nan)
+
+
+def prior(init: Calibration | None, config: UKFConfig, gauge: str | None,
+          gauge_terms: tuple[str, ...]) -> tuple[Array, Array]:
+    """Prior mean and σ (40,) each of the base states from ``init`` (its σ × ``init_inflation``, the
+    cold σ where it has none) or cold (bias 0, scale 1, angles 0, ``cold_sigma``). Attitude entries 0
+    (filled when the attitude starts); dip 60° ± 30°."""
+    c = config
+    x = np.zeros(N_STATE)
+    sig = np.zeros(N_STATE)
+    for s in SENSORS:
+        cal = init.sensor(s) if init is not None else None
+        sl = SENSOR_SLICE[s]
+        cold = c.cold_sigma[s]
+        if cal is None:
+            x[sl] = np.concatenate([np.zeros(3), np.ones(3), np.zeros(6)])
+            sig[sl] = np.repeat([cold[p] for p in PARAMS], 3)
+            if s == gauge:
+                # cold: B is this sensor's frame by definition, the held terms carry no uncertainty
+                for p in gauge_terms:
+                    sig[sl.start + PARAMS.index(p) * 3 : sl.start + PARAMS.index(p) * 3 + 3] = c.gauge_cold_sigma
+        else:
+            x[sl] = np.concatenate([cal.bias, cal.scale, cal.alpha, cal.xi])
+            given = given_sigma(cal)
+            cold_v = np.repeat([cold[p] for p in PARAMS], 3)
+            if s == "mag":
+                cold_v[:3] *= float(1.0 / np.mean(cal.scale))  # mag bias σ relative to the raw field
+                cold_v[3:6] *= float(np.mean(cal.scale))
+            infl = np.full(12, c.init_inflation)
+            if s == gauge:
+                # consider states are never updated from the data: no double use to allow for
+                for p in gauge_terms:
+                    infl[PARAMS.index(p) * 3 : PARAMS.index(p) * 3 + 3] = 1.0
+            sig[sl] = np.where(np.isfinite(given), given * infl, cold_v)
+    x[DIP] = math.radians(60.0)
+    sig[DIP] = math.radians(30.0)
+    return x, sig
+
+
+def reset_states(x: Array, P: Array, idx: slice | int | NDArray[np.intp], value: Array | float,
+                 cov: Array | float) -> None:
+    """Restart the states ``idx`` of (x (n,), P (n, n)) in place: value ``value``, covariance ``cov`` (a
+    matrix for a slice or index array, a variance for one index), uncorrelated with the rest."""
+    x[idx] = value
+    P[idx, :] = 0.0
+    P[:, idx] = 0.0
+    if isinstance(idx, np.ndarray):
+        P[np.ix_(idx, idx)] = cov
+    else:
+        P[idx, idx] = cov
+
+
+def initial_state(lay: StateLayout, x0: Array, sig0: Array) -> tuple[Array, Array, Array, Array]:
+    """x (n,), P (n, n), prior mean and prior σ (n,) of a fresh start: the 40 base states from their prior
+    (x0, sig0 of :func:`prior`), the extensions at 0 ± their prior σ, the attitude error 0 ± 0.1 rad (not a
+    prior: restarted with the first block); hold offsets come later (:func:`grow`)."""
+    n = lay.n
+    x = np.zeros(n)
+    sig = np.zeros(n)
+    x[:N_STATE], sig[:N_STATE] = x0, sig0
+    for e, sl in lay.ext_slice.items():
+        sig[sl] = EXTENSIONS[e][1]
+    prior_sigma, prior_x = sig.copy(), x.copy()
+    sig[ATT] = 0.1
+    return x, np.diag(sig**2), prior_x, prior_sigma
+
+
+def grow(x: Array, P: Array, prior_x: Array, prior_sigma: Array, n1: int) -> tuple[Array, Array, Array, Array]:
+    """The same state with zero states appended up to n1 (new hold offsets; set by the caller)."""
+    n0 = x.shape[0]
+    x1 = np.zeros(n1)
+    x1[:n0] = x
+    P1 = np.zeros((n1, n1))
+    P1[:n0, :n0] = P
+    return x1, P1, np.concatenate([prior_x, np.zeros(n1 - n0)]), np.concatenate([prior_sigma, np.zeros(n1 - n0)])

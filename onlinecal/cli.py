@@ -308,14 +308,16 @@ def _warm_kernels() -> None:
     warmup.start()
 
 
-def online_health(res: Any, logs: Sequence[Any] | None = None, mag_start: str | None = None) -> dict[str, Any]:
+def online_health(res: Any, logs: Sequence[Any] | None = None, mag_start: str | None = None,
+                  start: Any = None) -> dict[str, Any]:
     """Health of an online result (replay, run, fleet): NIS, events, observability, ranges, mag coverage.
-    ``mag_start``: "file" (started from a calibration file), "batch" (from the batch of these logs), None."""
+    ``mag_start``: "file" (started from a calibration file), "batch" (from the batch of these logs), None;
+    ``start``: that calibration, for the cross-check (onlinecal.health.start_checks)."""
     from .health import assess
 
     return assess(res.calibration, events=getattr(res, "events", None), nis=getattr(res, "nis", None),
                   observability=getattr(res, "observability", None),
-                  mag_raw=_mag_raw(logs) if logs else None, raw=_raw(logs), mag_start=mag_start)
+                  mag_raw=_mag_raw(logs) if logs else None, raw=_raw(logs), mag_start=mag_start, start=start)
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
@@ -346,6 +348,12 @@ def cmd_replay(a: argparse.Namespace) -> int:
         for p in a.logs:
             logs += _read_logs([p], a)
             pb.update()
+    from .batch.clock import regularise_for_filter
+
+    # the filter's clock, said once (the batch and the replay then see sample times)
+    fixed = [regularise_for_filter(d) for d in logs]
+    logs = [d for d, _ in fixed]
+    _warn([n for _, notes in fixed for n in notes])
     _warm_kernels()
     init, batch = _initial(a, logs)
     from .apply_ext import prepare
@@ -384,13 +392,16 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
     """``replay`` without the batch step (helper io): every log streamed block by block through the filter
     (onlinecal.ukf.replay.replay_stream), so memory does not grow with the logs' length. None when the start
     calibration carries extensions that need whole logs (the caller then reads them whole)."""
+    from .batch.clock import ReclockedReader
     from .io import open_log
     from .progress import bar
     from .ukf.replay import replay_stream
 
-    readers = [open_log(p, **_scales(a)) for p in a.logs]  # every file checked before the work starts
+    # every file checked before the work starts; burst-read stamps replaced by a fitted clock as the batch does
+    readers = [ReclockedReader(open_log(p, **_scales(a))) for p in a.logs]
     _warm_kernels()
     label, logs, init = "init", None, None
+    bres_warnings: list[str] = []
     if a.init == "batch":
         from .batch import run_batch
         from .health import filter_start
@@ -400,6 +411,7 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
             logs, reds = _read_for_batch(a.logs, a)
             bres = run_batch(logs, reduced=reds, latitude_deg=_latitude_deg(a))
         _warn(bres.warnings)
+        bres_warnings = list(bres.warnings)
         init, notes = filter_start(bres.calibration, _mag_raw(logs))
         _warn(notes)
         del bres
@@ -416,8 +428,10 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
 
         res = replay_stream((r.blocks(REPLAY_CHUNK) for r in readers), init, chunk=REPLAY_CHUNK,
                             trace_path=a.trace, on_progress=show, config=_ukf_config(a))
+    said = set(bres_warnings)
     for r in readers:
-        _warn([f"{r.path}: {w}" for w in r.warnings])
+        # the clock's sentences name the file already (the batch start said them too: not twice)
+        _warn([f"{r.path}: {w}" for w in r.warnings if w not in r.notes] + [w for w in r.notes if w not in said])
     _warn(res.warnings)
     return _replay_result(a, res, init, label, logs, None, [])
 
@@ -428,7 +442,7 @@ def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs
     data did not determine, the files written; the exit status by the verdict."""
     from .report import truth_table
 
-    health = online_health(res, logs, None if start is None else ("batch" if label == "batch" else "file"))
+    health = online_health(res, logs, None if start is None else ("batch" if label == "batch" else "file"), start)
     print(truth_table(None, start, res.calibration, labels=(label, "online")), file=_human(a.json))
     _print_observability(res.calibration, _human(a.json))
     _wrote(res.calibration, health, a.json, report, written)

@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from .model import SENSORS, Calibration
+from .model import PARAMS, SENSORS, Calibration
 from .specs import rail_samples
 
 HEALTH_SCHEMA = "onlinecal.health/1"
@@ -419,10 +419,60 @@ def undetermined_terms(cal: Calibration, observability: dict[str, Any] | None) -
     return out
 
 
+START_AGREEMENT_SIGMA = 5.0  # |online − start| / hypot(σ_online, σ_start) beyond this: the two disagree
+
+
+def start_checks(cal: Calibration, start: Calibration | None, observability: dict[str, Any] | None,
+                 same_data: bool) -> tuple[list[tuple[str, str]], list[dict[str, Any]]]:
+    """The cross-check of an online result against the calibration it started from (the mission: the filter is
+    initialised *and cross-checked* by the batch). A term that both give with σ, that the filter determined
+    (observability ratio ≤ :data:`UNDETERMINED_RATIO`; an undetermined one is the start's value), and whose two
+    values differ by more than :data:`START_AGREEMENT_SIGMA` combined σ is a contradiction: one of the two σ is a
+    false promise. It degrades the result, and the words say which case: on the same logs (``same_data``: the batch
+    of these logs) two fits of one data set disagree — MARG set 1, session 16: the batch's magnetometer bias σ
+    (3e-4, from 6 744 samples as if independent) against a field that differs by place by 2 %; from a calibration
+    of other data the sensor may have changed since, or either may be wrong. Returns (findings, the terms:
+    ``term``, ``online``, ``start``, ``sigmas``)."""
+    if start is None:
+        return [], []
+    out: list[dict[str, Any]] = []
+    for s in SENSORS:
+        a, b = cal.sensor(s), start.sensor(s)
+        if a is None or b is None:
+            continue
+        pa, pb = a.params(), b.params()
+        for p in PARAMS:
+            sa, sb = a.sigma.get(p), b.sigma.get(p)
+            if sa is None or sb is None:
+                continue
+            for i, ax in enumerate("xyz"):
+                key = f"{s}.{p}.{ax}"
+                ob = (observability or {}).get(key)
+                if isinstance(ob, dict) and isinstance(ob.get("ratio"), (int, float)) \
+                        and not ob["ratio"] <= UNDETERMINED_RATIO:
+                    continue
+                d = float(pa[p][i] - pb[p][i])
+                sig = math.hypot(float(np.asarray(sa)[i]), float(np.asarray(sb)[i]))
+                if sig > 0 and math.isfinite(d) and abs(d) > START_AGREEMENT_SIGMA * sig:
+                    out.append({"term": key, "online": float(pa[p][i]), "start": float(pb[p][i]),
+                                "sigmas": abs(d) / sig})
+    if not out:
+        return [], []
+    out.sort(key=lambda r: -r["sigmas"])
+    words = ", ".join(f"{r['term']} {r['online']:+.4g} against {r['start']:+.4g} ({r['sigmas']:.0f}σ)" for r in out[:6])
+    words += f" and {len(out) - 6} more" if len(out) > 6 else ""
+    if same_data:
+        return [("degraded", f"the online result contradicts the batch it started from, on the same logs, beyond "
+                             f"both σ: {words}: at least one of the two σ is a false promise; check both out of fit "
+                             "(turn angles, attitude closure) before using either")], out
+    return [("degraded", f"the online result moved from its start calibration beyond both σ: {words}: the sensor "
+                         "changed since, or one of the two is wrong")], out
+
+
 def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Sequence[dict[str, Any]] | None = None,
            observability: dict[str, Any] | None = None, mag_raw: Any = None,
            raw: dict[str, Any] | None = None, warnings: Sequence[str] = (),
-           mag_start: str | None = None) -> dict[str, Any]:
+           mag_start: str | None = None, start: Calibration | None = None) -> dict[str, Any]:
     """The health verdict of ``cal`` (see the module doc).
 
     ``nis`` and ``events`` default to ``cal.meta["online"]`` (an online result); ``observability``: the
@@ -431,7 +481,8 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
     (:func:`rail_checks`); ``warnings``: the fit's own warnings (kept as notes); ``mag_start``: where an
     online result's magnetometer started, ``"file"`` (a calibration fitted on other data: the coverage of
     these samples does not judge it unless the filter re-fitted it cold), ``"batch"`` (fitted on these
-    samples) or None (unknown: judged as fitted here).
+    samples) or None (unknown: judged as fitted here); ``start``: the calibration an online result started
+    from, for the cross-check (:func:`start_checks`; its data the same logs where ``mag_start`` is "batch").
     Returns ``{"schema", "verdict", "reasons", "notes", "checks"}``.
     """
     online = cal.meta.get("online", {}) if isinstance(cal.meta, dict) else {}
@@ -468,6 +519,10 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
                 found.append(("degraded", f"mag: the samples point in only {100 * cov:.0f} % of directions (need "
                                           f"{100 * COVERAGE_MIN:.0f} %): the ellipsoid fit (eq. 17) extrapolates and "
                                           "its bias and scales can be off by far more than their σ"))
+    sf, agreement = start_checks(cal, start, observability, mag_start == "batch")
+    found += sf
+    if start is not None:
+        checks["start_agreement"] = agreement
     und = undetermined_terms(cal, observability)
     checks["undetermined"] = und
     if und:

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from onlinecal.specs import FIELD_GAUSS
+from onlinecal.specs import FIELD_GAUSS, RAIL_SAMPLES, RAIL_TOL
 from onlinecal.ukf import magdisturb as md
 from onlinecal.ukf.attitude_init import MagCollector, fit_mag_cold
 from onlinecal.ukf.config import UKFConfig
@@ -168,12 +168,38 @@ def test_noise_caches_equal_the_uncached_formulas_as_the_state_moves() -> None:
 
 
 # ---------------------------------------------------------------- rail detector
+def _top_rule(det: RailDetector, s: str, v, amax, rail_min: float) -> bool:
+    """The recurring-top rule as specs.rail_samples states it for a whole log, kept per block: the largest
+    magnitude so far and the samples within RAIL_TOL of it since it last rose beyond that; RAIL_SAMPLES of them
+    above rail_min make a rail at top·(1 − RAIL_TOL). True where this block made one known."""
+    top = det.top.setdefault(s, [0.0] * 3)
+    n = det.n_top.setdefault(s, [0] * 3)
+    made = False
+    for k in range(3):
+        x = float(amax[k])
+        if np.isnan(x) or x < top[k] * (1 - RAIL_TOL):
+            continue
+        lim = max(top[k], x) * (1 - RAIL_TOL)
+        n[k] = 0 if lim > top[k] else n[k]
+        top[k] = max(top[k], x)
+        if x >= rail_min:
+            n[k] += int(np.sum(np.abs(v[:, k]) >= lim))
+            rail = det.rail.get(s)
+            if n[k] >= RAIL_SAMPLES and (rail is None or rail[k] > lim):
+                r = det.rail.setdefault(s, [math.inf] * 3)
+                r[k] = min(r[k], lim)
+                made = True
+    return made
+
+
 def _check_per_axis(det: RailDetector, w, a, w_absmax, a_absmax, rail_min, rail_run):
-    """RailDetector.check as it was: the runs of every axis of every block through _runs."""
+    """RailDetector.check as it was (the runs of every axis of every block through _runs), and the
+    recurring-top rule (session 16)."""
     out, events = {"mag": False}, []
     for s, v, amax in (("gyro", w, w_absmax), ("accel", a, a_absmax)):
         rail = det.rail.get(s)
         hit = rail is not None and bool(np.any(amax >= np.asarray(rail) * (1 - 1e-9)))
+        hit = _top_rule(det, s, v, amax, rail_min[s]) or hit
         if float(amax.max()) < rail_min[s]:
             det.run.pop(s, None)
         else:
@@ -236,9 +262,12 @@ def test_rail_detector_short_blocks_equal_the_per_axis_runs(L: int) -> None:
         # (repr: a NaN reading in an open run compares unequal to itself)
         for d in (new, pre):
             assert repr(d.rail) == repr(ref.rail) and repr(d.run) == repr(ref.run) and d.clip_on == ref.clip_on, blk
+            assert d.top == ref.top and d.n_top == ref.n_top, blk
         if blk % 97 == 50:  # a learnt rail forgotten, so that learning happens again
             for d in (new, pre, ref):
                 d.rail.pop("gyro", None)
+                d.top.pop("gyro", None)
+                d.n_top.pop("gyro", None)
         learnt += bool(new.rail)
     assert learnt > 0
 

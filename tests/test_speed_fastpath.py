@@ -465,8 +465,61 @@ def test_the_compiled_rail_pass_equals_the_rail_detector_block_by_block() -> Non
             n_events += len(ev)
         assert (pre is None) == (feed == 9)
         assert fast.rail == ref.rail and fast.run == ref.run and fast.clip_on == ref.clip_on, feed
+        assert fast.top == ref.top and fast.n_top == ref.n_top, feed
         t0 = float(t[-1])
     assert n_events >= 6 and set(ref.rail) == {"gyro", "accel"}, (n_events, ref.rail)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_rail_pass_learns_a_recurring_top_mid_feed_as_the_block_rule_does(seed: int) -> None:
+    """A gyro and accel clipped in short stretches only (2–6 samples: the run rule never learns them) — the
+    recurring-top rule learns the rail somewhere inside a feed; RailDetector.prepass (its one compiled call split
+    there) against RailDetector.check block by block: the same flags, events with the rail they name, state."""
+    from onlinecal.ukf.blocks import block_stats
+    from onlinecal.ukf.detectors import RailDetector
+
+    rng = np.random.default_rng(seed)
+    rail_min, rail_run = {"gyro": 1.0, "accel": 14.7}, 40
+    fast, ref = RailDetector(), RailDetector()
+    t0, learnt_mid = 0.0, 0
+    for feed in range(6):
+        N = 800
+        t = t0 + 0.005 * np.arange(1, N + 1)
+        w = rng.normal(0, 1.2, (N, 3))
+        a = rng.normal(9.8, 3.0, (N, 3))
+        for _ in range(6):  # short clipped stretches at ±4.3657 (gyro) and ±19.6133 (accel), both signs
+            i = int(rng.integers(0, N - 8))
+            k = int(rng.integers(0, 3))
+            n = int(rng.integers(2, 7))
+            w[i : i + n, k] = 4.3657 * rng.choice([-1.0, 1.0])
+            a[i : i + n, k] = 19.6133 * rng.choice([-1.0, 1.0])
+        if feed == 2:
+            w[50:60, 2] = np.nan
+        bounds = []
+        i = 0
+        while i < N:
+            L = int(rng.integers(2, 30))
+            bounds.append((i, min(N, i + L)))
+            i += L
+        if bounds[-1][1] - bounds[-1][0] < 2:
+            bounds[-2] = (bounds[-2][0], N)
+            bounds.pop()
+        had = {s: list(v) for s, v in ref.rail.items()}
+        B = block_stats(t, w, a, np.zeros(0), np.zeros((0, 3)), bounds, None, np.zeros(3), False)
+        pre = fast.prepass(B, w, a, rail_min, rail_run)
+        assert pre is not None
+        for b, (i, j) in enumerate(bounds):
+            clip, ev = ref.check(w[i:j], a[i:j], B.w_absmax[b], B.a_absmax[b], rail_min, rail_run,
+                                 (B.w_runs[b], B.a_runs[b]))
+            assert {"mag": False, "gyro": pre[0][b], "accel": pre[1][b]} == clip and pre[2].get(b, []) == ev, (feed, b)
+        assert fast.rail == ref.rail and fast.run == ref.run and fast.clip_on == ref.clip_on, feed
+        assert fast.top == ref.top and fast.n_top == ref.n_top, feed
+        learnt_mid += ref.rail != had
+        t0 = float(t[-1])
+    assert learnt_mid >= 1
+    for s, lim in (("gyro", 4.3657), ("accel", 19.6133)):  # the rail: the clip level, on every axis it hit
+        got = [r for r in ref.rail[s] if np.isfinite(r)]
+        assert got and all(abs(r - lim) <= 1e-3 * lim for r in got), (s, ref.rail[s])
 
 
 def test_the_motion_blocks_constants_follow_the_layout_and_the_noise_model() -> None:

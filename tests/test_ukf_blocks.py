@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from onlinecal.ukf.blocks import (
     RailDetector,
@@ -75,6 +76,7 @@ def test_rail_is_learnt_from_a_run_across_blocks_and_then_any_hit_counts():
     rail = 17.4
     w = np.zeros((30, 3))
     a = rng.normal(0, 0.01, (30, 3))
+    w[2, 0] = 20.0  # a larger peak first: the recurring-top rule (test_the_top_rule_*) does not take 17.4
     w[10:, 0] = rail  # 20 samples at the rail in this block ...
     clip, ev = det.check(w, a, np.abs(w).max(0), np.abs(a).max(0), {"gyro": 1.0, "accel": 14.7}, 40)
     assert not clip["gyro"] and ev == []
@@ -86,6 +88,34 @@ def test_rail_is_learnt_from_a_run_across_blocks_and_then_any_hit_counts():
     w3[7, 0] = rail  # once learnt, one sample at the rail is clipping
     clip, ev = det.check(w3, a, np.abs(w3).max(0), np.abs(a).max(0), {"gyro": 1.0, "accel": 14.7}, 40)
     assert clip["gyro"] and ev == []  # the stretch goes on: no new event
+
+
+def test_the_top_rule_learns_a_rail_reached_in_short_stretches_and_not_a_peak():
+    """The batch's rule (onlinecal.specs.rail_samples), causally: the largest magnitude recurring in RAIL_SAMPLES
+    samples, both signs, in stretches shorter than the run rule's 40, is the rail; a peak reached up to nine
+    times, or readings a little below it, are not."""
+    det = RailDetector()
+    lims = {"gyro": 1.0, "accel": 14.7}
+    a = rng.normal(9.8, 0.01, (20, 3))
+    top = 4.3657
+    clips = []
+    for k in range(8):  # stretches of 2 samples at ±top on x, and readings near but below it in between
+        w = rng.normal(0, 0.5, (20, 3))
+        w[5:7, 0] = top * (-1) ** k
+        w[12, 0] = top * 0.999
+        clip, ev = det.check(w, a, np.abs(w).max(0), np.abs(a).max(0), lims, 40)
+        clips.append((clip["gyro"], [e[0] for e in ev]))
+    # 2 per block: the fifth block brings the count to 10
+    assert [c for c, _ in clips] == [False] * 4 + [True] * 4
+    assert clips[4][1] == ["saturation"] and all(e == [] for _, e in clips[5:])
+    assert det.rail["gyro"][0] == pytest.approx(top * (1 - 1e-4)) and det.rail["gyro"][1:] == [math.inf] * 2
+    peak = RailDetector()
+    for _ in range(9):  # a peak reached nine times: no rail
+        w = rng.normal(0, 0.5, (20, 3))
+        w[3, 1] = 3.0
+        clip, _ = peak.check(w, a, np.abs(w).max(0), np.abs(a).max(0), lims, 40)
+        assert not clip["gyro"]
+    assert "gyro" not in peak.rail
 
 
 def test_rest_needs_rest_blocks_still_blocks_in_a_row():

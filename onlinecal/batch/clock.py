@@ -12,7 +12,9 @@ inverse slope, and the stamps' scatter about the line is reported.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,24 +56,89 @@ def fitted_clock(t: Array, gap_s: float = 1.0) -> tuple[Array, float, int]:
     return out, float(np.sqrt(np.mean((t - out) ** 2))), len(cuts) - 1
 
 
-def regularise_clock(d: ImuData) -> tuple[ImuData, list[str]]:
-    """``d`` with burst-read IMU and mag stamps replaced by fitted clocks, and a sentence saying so;
-    unchanged (and no sentence) when the stamps are sample times."""
+def fitted_stamps(source: str, t_imu: Array, t_mag: Array) -> tuple[Array, Array, list[str]]:
+    """The IMU and mag stamps of one log (:func:`regularise_clock`'s work on the bare arrays): each that is
+    burst-read replaced by its fitted clock, with a sentence per replacement naming ``source``."""
     notes = []
-    t_imu, t_mag = d.t_imu, d.t_mag
-    for name, t in (("IMU", d.t_imu), ("mag", d.t_mag)):
+    out = {"IMU": t_imu, "mag": t_mag}
+    for name, t in (("IMU", t_imu), ("mag", t_mag)):
         if not is_burst_stamped(t):
             continue
         med = float(np.median(np.diff(t)))
         clk, rms, parts = fitted_clock(t)
-        if name == "IMU":
-            t_imu = clk
-        else:
-            t_mag = clk
-        notes.append(f"{d.source}: {name} time stamps are burst read times (median Δt {1e3 * med:.1f} ms, mean "
+        out[name] = clk
+        notes.append(f"{source}: {name} time stamps are burst read times (median Δt {1e3 * med:.1f} ms, mean "
                      f"period {1e3 * (t[-1] - t[0]) / (t.size - 1):.1f} ms); a fitted sample clock is used "
                      f"(straight line in the sample index, {parts} stretch{'es' if parts > 1 else ''}; the stamps "
                      f"scatter {1e3 * rms:.1f} ms RMS about it)")
+    return out["IMU"], out["mag"], notes
+
+
+def regularise_clock(d: ImuData) -> tuple[ImuData, list[str]]:
+    """``d`` with burst-read IMU and mag stamps replaced by fitted clocks, and a sentence saying so;
+    unchanged (and no sentence) when the stamps are sample times."""
+    t_imu, t_mag, notes = fitted_stamps(d.source, d.t_imu, d.t_mag)
     if not notes:
         return d, []
     return replace(d, t_imu=t_imu, t_mag=t_mag), notes
+
+
+def regularise_for_filter(d: ImuData) -> tuple[ImuData, list[str]]:
+    """:func:`regularise_clock` for the online filter, which cuts its blocks and integrates the gyro on the
+    stamps: a log with clock segments (a reboot, a clock jump: ``ImuData.boundaries``) is left as it is, since
+    one fitted line cannot span a jump."""
+    if d.boundaries:
+        return d, []
+    return regularise_clock(d)
+
+
+class ReclockedReader:
+    """A streaming reader (:class:`~onlinecal.io.base.LogReader`) whose burst-read stamps are replaced by the
+    fitted clocks of the whole log, as :func:`regularise_clock` does to a log read whole.
+
+    The first block decides: stamps that are sample times (the usual case) stream through in one pass. Burst
+    stamps cost a first pass over the log that keeps only the stamps (16 bytes a sample), then the blocks
+    stream again with the fitted clock's stamps in place of the read times (``reader.blocks`` reads the file
+    afresh on each call). A log with clock segments is left as it is (:func:`regularise_for_filter`).
+    ``warnings``: the reader's, then the clock's sentences."""
+
+    def __init__(self, reader: Any) -> None:
+        self._reader = reader
+        self.path: str = reader.path
+        self.notes: list[str] = []
+
+    @property
+    def warnings(self) -> list[str]:
+        return list(self._reader.warnings) + self.notes
+
+    def blocks(self, max_samples: int = 4096) -> Iterator[ImuData]:
+        it = self._reader.blocks(max_samples)
+        first = next(it, None)
+        if first is None:
+            return
+        if first.boundaries or not (is_burst_stamped(first.t_imu) or is_burst_stamped(first.t_mag)):
+            yield first
+            yield from it
+            return
+        del first
+        it.close()
+        ti: list[Array] = []
+        tm: list[Array] = []
+        segmented = False
+        for b in self._reader.blocks(max_samples):
+            ti.append(b.t_imu)
+            tm.append(b.t_mag)
+            segmented = segmented or bool(b.boundaries)
+        if segmented:
+            yield from self._reader.blocks(max_samples)
+            return
+        t_imu, t_mag, notes = fitted_stamps(self.path, np.concatenate(ti), np.concatenate(tm))
+        del ti, tm
+        self.notes = notes
+        i = m = 0
+        for b in self._reader.blocks(max_samples):
+            ni, nm = b.t_imu.size, b.t_mag.size
+            if i + ni > t_imu.size or m + nm > t_mag.size:
+                raise RuntimeError(f"{self.path}: the log read differently on its second pass")
+            yield replace(b, t_imu=t_imu[i : i + ni], t_mag=t_mag[m : m + nm])
+            i, m = i + ni, m + nm

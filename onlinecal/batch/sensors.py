@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -465,14 +466,99 @@ def fit_accelerometer(
     fit: NormFit = fit_norm_lm(a, g, o0, M0, model=model)
     Q, sig_a = _align(segs, _acc_samples, fit.M, fit.o, 0.3 * g, rep)
     M = Q @ fit.M
+    cov9 = fit.cov if model == "full" else reduced_model_cov(a, g, fit, model, _static_noise_var(segs))
     norms = np.linalg.norm((a - fit.o) @ M.T, axis=1)
     rep.figures.update({
         "model": model,
         "static_norm_rms_error": float(np.sqrt(np.mean((norms - g) ** 2))),
         "raw_static_norm_rms_error": float(np.sqrt(np.mean((np.linalg.norm(a, axis=1) - g) ** 2))),
     })
-    sig = propagate_sigma(fit.o, fit.M, fit.cov, Q, sig_a, rng)
+    sig = propagate_sigma(fit.o, fit.M, cov9, Q, sig_a, rng)
+    if model != "full":
+        und = _acc_undetermined(sig)
+        if und:
+            rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | set(und))
+            rep.warnings.append(
+                f"accel: with the terms the {model!r} fit holds fixed at their prior "
+                f"({100 * ACC_PRIOR_SIGMA['scale']:.0f} % scale, "
+                f"{ACC_PRIOR_SIGMA['xi']} rad non-orthogonality) not determined by the data (σ above half the "
+                f"prior's): {', '.join('accel.' + u for u in und)} — start values, not a calibration; hold the unit "
+                "still in more attitudes (the paper's 12 positions)")
     return SensorCalibration(fit.o, M, sig), rep
+
+
+# The prior of the accelerometer terms a reduced static fit holds fixed, and the width against which a term counts
+# as undetermined (σ above half of it): the online filter's cold prior (UKFConfig.cold_sigma["accel"], the same
+# numbers, checked by tests/test_accel_reduced_sigma.py) — 0.5 m/s² bias, 5 % scale, 0.02 rad non-orthogonality.
+ACC_PRIOR_SIGMA = {"bias": 0.5, "scale": 0.05, "xi": 0.02}
+
+
+def _static_noise_var(segs: list[Segmentation]) -> Array:
+    """Variance (K,) (m/s²)² of the norm of each static mean (:func:`static_means`' order): the mean per-axis
+    sample variance over the samples in it — the floor of the fit's residual where it has no degree of freedom
+    to estimate one (three attitudes, three unknowns: an exact solve leaves a residual of zero)."""
+    v = []
+    for s in segs:
+        for iv in s.statics:
+            x = s.data.acc[iv.i0 : iv.i1]
+            v.append(float(np.mean(x.var(axis=0))) / max(1, x.shape[0]))
+    return np.array(v)
+
+
+def reduced_model_cov(a: Array, g: float, fit: NormFit, model: str, noise_var: Array) -> Array:
+    """Covariance (9, 9) of (o, upper triangle of M) for a reduced static fit (eq. 32 with ``model`` "offset",
+    "bias" or "diag", :func:`.ellipsoid.fit_norm_lm`) that states what the fit assumed: the matrix directions it
+    holds fixed carry the prior :data:`ACC_PRIOR_SIGMA` (× the mean scale m̄: σ m̄·0.05 on the diagonal, m̄·0.01
+    off it, which turns two axes by 0.02 rad), and the fitted parameters move with them as the solve would
+    (δp_F = −(AᵀA)⁻¹AᵀB δu, A and B the residual Jacobian along the fitted and the fixed directions). Without a
+    degree of freedom the residual's variance is the static means' noise (``noise_var`` (K,)) instead of the zero
+    the exact solve leaves.
+    Before (session 16), the fixed directions had no variance: MARG set 1's three rests gave an accelerometer
+    bias of ±1e-16 m/s² and a scale of ±4e-7 — σ of an assumption, not of the data."""
+    from .ellipsoid import _resid_jac_full
+
+    p9 = np.concatenate([fit.o, fit.M[_IU]])
+    _, J = _resid_jac_full(p9, a, g)
+    diag6 = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])  # the diagonal of M in the upper-triangle order
+    fitted = [np.eye(9)[k] for k in range(3)]
+    if model == "bias":
+        fitted.append(np.concatenate([np.zeros(3), diag6]) / math.sqrt(3.0))
+    elif model == "diag":
+        fitted += [np.eye(9)[3 + k] for k in (0, 3, 5)]
+    F = np.array(fitted).T  # (9, P), orthonormal
+    w, V = np.linalg.eigh(np.eye(9) - F @ F.T)
+    U = V[:, w > 0.5]  # (9, 9 − P): the directions the fit holds fixed (all within M)
+    mbar = float(np.trace(fit.M) / 3.0)
+    # an off-diagonal E_jk of a symmetric M = m̄(I + E) turns axes j and k towards each other by 2E_jk: σ ξ / 2
+    prior = np.concatenate([np.zeros(3), np.where(diag6 > 0, (mbar * ACC_PRIOR_SIGMA["scale"]) ** 2,
+                                                  (mbar * ACC_PRIOR_SIGMA["xi"] / 2.0) ** 2)])
+    Su = U.T @ np.diag(prior) @ U
+    A, B = J @ F, J @ U
+    AtA_inv = np.linalg.pinv(A.T @ A)
+    G = F @ (-AtA_inv @ A.T @ B) + U
+    if a.shape[0] > F.shape[1]:
+        cov_fit = fit.cov
+    else:  # an exact solve: the noise of the means, not the zero residual
+        s2 = float(np.mean(noise_var)) if noise_var.size else 0.0
+        cov_fit = s2 * (F @ AtA_inv @ F.T)
+    out: Array = cov_fit + G @ Su @ G.T
+    # the fixed directions move the norms at second order too (~g·E², which the linear map above leaves out): with
+    # six rests along ±axes and 1 % off-diagonals, 2e-4 m/s² of bias, 1.5× the noise of 6 long rests. Sized on that
+    # case (tests/test_accel_reduced_sigma.py: an eighth of g·tr(Σu)/m̄² per bias axis), negligible beside the
+    # first-order term wherever that one is not zero
+    out[:3, :3] += np.eye(3) * (0.125 * g * float(np.trace(Su)) / mbar**2) ** 2
+    return 0.5 * (out + out.T)
+
+
+def _acc_undetermined(sig: dict[str, list[float]]) -> list[str]:
+    """The accelerometer terms of a reduced fit whose σ stayed above half :data:`ACC_PRIOR_SIGMA` (a term with all
+    three axes so: its name alone, e.g. "scale"; else the axes, "bias.z")."""
+    out = []
+    for p in ("bias", "scale", "xi"):
+        s = sig.get(p)
+        axes = [a for i, a in enumerate("xyz") if s is None or not float(s[i]) <= 0.5 * ACC_PRIOR_SIGMA[p]]
+        out += [p] if len(axes) == 3 else [f"{p}.{a}" for a in axes]
+    return out
 
 
 __all__ = ["fit_magnetometer", "fit_accelerometer", "static_means", "StepReport", "sqrtm_spd", "sqrt_psd"]

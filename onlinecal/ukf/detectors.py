@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..specs import RAIL_SAMPLES, RAIL_TOL
+
 if TYPE_CHECKING:
     from .blocks import Blocks
 
@@ -128,11 +130,46 @@ class RailDetector:
     """The ADC rail of gyro and accel, learnt from the data. A rail is ``rail_run`` identical readings in a
     row (runs carry over block boundaries) at a magnitude of at least ``rail_min``: noise makes a reading
     that is not clipped change within a few samples. Once learnt, any reading at the rail counts as
-    clipped. State: the learnt rail per sensor and axis, the open runs, whether a clipped stretch is on."""
+    clipped. State: the learnt rail per sensor and axis, the open runs, whether a clipped stretch is on.
+
+    A rail is also learnt the batch's way (:func:`onlinecal.specs.rail_samples`), causally: an axis whose largest
+    magnitude so far, above ``rail_min``, has recurred within :data:`~onlinecal.specs.RAIL_TOL` in
+    :data:`~onlinecal.specs.RAIL_SAMPLES` samples (:meth:`_top_block`; state ``top``, ``n_top``). A hand that
+    tumbles a ±250 °/s gyro past its range clips it in short stretches — MARG's tilt-sphere: 271 samples at the rail
+    in 32 stretches, none 40 long — which the run rule never learnt: the clipped readings went into the filter as
+    rates, the lost rotation into the gyro scale (x 1.042 ± 0.001 on that file alone, session 16)."""
 
     rail: dict[str, list[float]] = field(default_factory=dict)
     run: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
     clip_on: dict[str, bool] = field(default_factory=lambda: {"gyro": False, "accel": False, "mag": False})
+    top: dict[str, list[float]] = field(default_factory=dict)
+    n_top: dict[str, list[int]] = field(default_factory=dict)
+
+    def _top_block(self, s: str, v: Array, am: list[float], rail_min: float) -> list[tuple[int, float]]:
+        """The recurring-top rule for one block of sensor ``s`` (v (L, 3) raw, ``am`` its largest |reading| per
+        axis as Python floats): per axis the running largest magnitude ``top`` and the samples within RAIL_TOL
+        of it ``n_top`` (from when the top last rose beyond the tolerance; counted only above ``rail_min``).
+        Returns the axes whose rail this block makes known: (axis, rail = top·(1 − RAIL_TOL), both signs).
+        A block below its axes' top·(1 − RAIL_TOL) changes nothing (the vectorised screen of :meth:`prepass`
+        relies on it)."""
+        top = self.top.setdefault(s, [0.0, 0.0, 0.0])
+        cnt = self.n_top.setdefault(s, [0, 0, 0])
+        rail = self.rail.get(s)
+        out = []
+        for k in range(3):
+            x = am[k]
+            if not x >= top[k] * (1.0 - RAIL_TOL):  # (NaN: nothing)
+                continue
+            new = max(top[k], x)
+            lim = new * (1.0 - RAIL_TOL)
+            if lim > top[k]:  # the top rose beyond the tolerance: the earlier samples are not at it
+                cnt[k] = 0
+            top[k] = new
+            if x >= rail_min:
+                cnt[k] += int(np.count_nonzero(np.abs(v[:, k]) >= lim))
+                if cnt[k] >= RAIL_SAMPLES and (rail is None or not rail[k] <= lim):
+                    out.append((k, lim))
+        return out
 
     def check(self, w: Array, a: Array, w_absmax: Array, a_absmax: Array, rail_min: dict[str, float],
               rail_run: int, runs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None
@@ -148,6 +185,10 @@ class RailDetector:
             rail = self.rail.get(s)
             am = amax.tolist()  # Python floats: the same comparisons (a NaN fails each, as np.any/np.max's)
             hit = rail is not None and any(x >= r * (1 - 1e-9) for x, r in zip(am, rail, strict=True))
+            for k, val in self._top_block(s, v, am, rail_min[s]):
+                r = self.rail.setdefault(s, [math.inf] * 3)
+                r[k] = min(r[k], val)
+                hit = True
             if _all_below(am, rail_min[s]):
                 self.run.pop(s, None)
             else:
@@ -200,15 +241,54 @@ class RailDetector:
 
         hits: list[list[bool]] = []
         events: dict[int, list[tuple[str, str]]] = {}
+        lo, hi = B.lo, B.hi
         for s, v, amax, rr in (("gyro", w, B.w_absmax, B.w_runs), ("accel", a, B.a_absmax, B.a_runs)):
+            am = np.ascontiguousarray(amax)
+            # the recurring-top rule (:meth:`_top_block`) on the blocks that reach their axis' running top (the
+            # top before each block: fmax ignores NaN, as the rule does); the others change nothing
+            top0 = np.array(self.top.get(s, [0.0, 0.0, 0.0]))
+            before = np.fmax.accumulate(np.vstack([top0[None, :], am]), axis=0)[:-1]
+            learn: dict[int, list[tuple[int, float]]] = {}
+            for b in np.flatnonzero((am >= before * (1.0 - RAIL_TOL)).any(axis=1)).tolist():
+                got = self._top_block(s, v[lo[b] : hi[b]], am[b].tolist(), float(rail_min[s]))
+                if got:
+                    learn[b] = got
             learnt = s in self.rail
             rail = np.array(self.rail[s] if learnt else [math.inf] * 3, dtype=float)
             carry = self.run.get(s)
             cv = np.array([c[0] for c in carry] if carry is not None else [0.0] * 3, dtype=float)
             cn = np.array([c[1] for c in carry] if carry is not None else [0] * 3, dtype=np.intp)
-            hit, ev, rail_at, learnt, has_carry, clip_on = rail_pass_kernel(
-                np.ascontiguousarray(amax), np.ascontiguousarray(rr), v[B.lo], v[B.hi - 1], L, rail, learnt, cv, cn,
-                carry is not None, self.clip_on[s], float(rail_min[s]), int(rail_run))
+            has_carry, clip_on = carry is not None, self.clip_on[s]
+            hit_all: list[bool] = []
+            # one call over the feed; where the top rule learns a rail, the call stops after that block and the
+            # rail joins before the next (at most once per axis in a log)
+            b0 = 0
+            for b_end in [*sorted(learn), len(L) - 1]:
+                if b_end < b0:
+                    continue
+                sl = slice(b0, b_end + 1)
+                was_on = clip_on
+                hit, ev, rail_at, learnt, has_carry, clip_on = rail_pass_kernel(
+                    am[sl], np.ascontiguousarray(rr[sl]), v[lo[sl]], v[hi[sl] - 1], L[sl], rail, learnt, cv, cn,
+                    has_carry, clip_on, float(rail_min[s]), int(rail_run))
+                hl = hit.tolist()
+                evs = np.flatnonzero(ev).tolist()
+                if b_end in learn:  # as check(): the block reads at the rail, its event with the rail then known
+                    if not learnt:
+                        learnt = True
+                        rail[:] = math.inf
+                    for k, val in learn[b_end]:
+                        rail[k] = min(rail[k], val)
+                    prev_on = hl[-2] if len(hl) > 1 else was_on
+                    if not prev_on and (len(hl) - 1) not in evs:
+                        evs.append(len(hl) - 1)
+                    rail_at[len(hl) - 1] = rail
+                    hl[-1] = True
+                    clip_on = True
+                for e in evs:
+                    events.setdefault(b0 + e, []).append(_saturation_event(s, rail_at[e].tolist()))
+                hit_all += hl
+                b0 = b_end + 1
             if learnt:
                 self.rail[s] = rail.tolist()
             if has_carry:
@@ -216,9 +296,7 @@ class RailDetector:
             else:
                 self.run.pop(s, None)
             self.clip_on[s] = bool(clip_on)
-            hits.append(hit.tolist())
-            for b in np.flatnonzero(ev).tolist():
-                events.setdefault(b, []).append(_saturation_event(s, rail_at[b].tolist()))
+            hits.append(hit_all)
         return hits[0], hits[1], events
 
 

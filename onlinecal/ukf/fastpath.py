@@ -587,7 +587,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     a_mean = B.a_mean[b]
     use_acc = not clip["accel"]
     n_m = B.mhi_l[b] - B.mlo_l[b]
-    var_mag = n["mag"] ** 2 / max(n_m, 1)
+    var_mag = cal._models.mag.variance(n["mag"] ** 2 / max(n_m, 1), n["mag"], cal.x)
     yaw = c.yaw_free_sigma**2 if cal._mag.yaw_free else -1.0
     hold_a, hold_m = _hold_col(cal, "accel", held), _hold_col(cal, "mag", held)
     mod = cal._models.acc
@@ -817,10 +817,11 @@ def rest_applies(cal: OnlineCalibrator) -> bool:
 
 
 def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0: Array, held: dict[str, bool],
-                     first: bool, k_div: int, tl: float) -> None:
+                     first: bool, k_div: int, tl: float, sig_mag: float = 0.0) -> None:
     """The end of :func:`.step.rest_step` (sigma points, rest measurements, the gated update, its NIS
     bookkeeping, the fold and commit) with the arithmetic in :func:`rest_update_kernel`; ``k_div`` the
-    divergence count before the block, ``first`` whether the rest began with this block (its NIS recorded)."""
+    divergence count before the block, ``first`` whether the rest began with this block (its NIS recorded),
+    ``sig_mag`` raw the mag's per-sample noise (:meth:`.measurements.MagModel.variance`)."""
     st = _step_module()
     c = cal.config
     lay = cal.lay
@@ -838,7 +839,7 @@ def rest_update_fast(cal: OnlineCalibrator, acc: RestAccumulator, x0: Array, P0:
     ok, x, P, nis, status, post_z, post_P, solved, R_new, fine = rest_update_kernel(
         x0, P0, lam + nst, order, cal.R_nom, cal._Wm, cal._Wc, has_acc, a_mean,
         1.0 / math.sqrt(acc.info("accel")) if has_acc else 1.0, has_mag, m_mean,
-        1.0 / acc.info("mag") if has_mag else 1.0,
+        cal._models.mag.variance(1.0 / acc.info("mag"), sig_mag, x0) if has_mag else 1.0,
         acc.gyro_mean(), var_rest, _hold_col(cal, "accel", held), _hold_col(cal, "mag", held),
         -1 if gyr is None else int(gyr.start), mod.gravity, mod.dev_gain,
         np.array([cal._gates["accel"], cal._gates["mag"]]), lay.consider, yaw, _G0, _A0, _M0, DIP)

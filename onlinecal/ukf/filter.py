@@ -43,7 +43,7 @@ from .health import EventLog, NisMonitor, chi2_ppf
 from .layout import AXES, SENSOR_SLICE, index
 from .magdisturb import MagDisturbanceGate
 from .magstart import MagStart
-from .measurements import AccelModel, MagModel, Models, ZeroRateModel
+from .measurements import AccelModel, MagModel, Models, ZeroRateModel, misfit_of
 from .noise import NoiseModel, lattice_plan, raw_field_unit
 from .noise import hold_sigma as hold_sigma  # re-exported
 from .outputs import (
@@ -115,7 +115,7 @@ class OnlineCalibrator:
         self._gates = {"accel": chi2_ppf(c.acc_gate_p, 3), "mag": chi2_ppf(c.mag_gate_p, 3)}
         self._specs = c.sensor_specs()
         self._noise = NoiseModel(self._specs)
-        self._models = Models(AccelModel(c.gravity, c.acc_dev_gain, c.acc_lever_m), MagModel(),
+        self._models = Models(AccelModel(c.gravity, c.acc_dev_gain, c.acc_lever_m), MagModel(misfit_of(self.init)),
                               ZeroRateModel((c.rest_rate_sigma,) * 3))
         self.gauge, self._gauge_terms = choose_gauge(self.init, c)
         # the Earth-rate allowance (σ rad/s, Ω_h² (rad/s)²): .earth.allowance, per block where the latitude is known
@@ -222,6 +222,8 @@ class OnlineCalibrator:
         self._buf = SampleBuffer()
         self._t_last = None
         self._att_ok = False
+        self._next_trace = -math.inf  # each log's clock starts afresh (plots.monotone_time): so does its trace
+        self._magd.new_log()
         self._lat.q = None  # a new log may come in another format: its lattice is detected again
         self._rest_det.reset()
 

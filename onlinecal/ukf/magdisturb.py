@@ -124,7 +124,14 @@ class MagDisturbanceGate:
     """Whether the magnetometer's block is used (see the module doc). ``active``: inside a disturbance
     since log time ``since`` s; ``last_bad``: the last block that disagreed; ``excluded``: blocks left out
     in the current stretch; ``stretches``: how many so far; ``armed``: the field has agreed for ``CLEAR_S``
-    s (since the start or since a lasting disagreement), from ``agreed_since`` s."""
+    s (since the start or since a lasting disagreement), from ``agreed_since`` s. ``log_fresh``: no block of
+    the current log judged yet; ``whole_log``: the running stretch began with the log's first judged block.
+
+    A log whose field disagrees from its first block on was recorded in another field (another place, another
+    mounting) — as the batch leaves such a file out of its magnetometer fit ("field +32 % against the other
+    files"), its magnetometer stays out until the field agrees or the log ends, not only for ``MAX_S``: MARG
+    set 1's ``unmoved-x-pointing-up.csv`` (70 s at +32 %) was let back in after 45 s, diverged the filter and
+    restarted the gyro and mag terms at the cold prior's σ (session 16)."""
 
     active: bool = False
     since: float = math.nan
@@ -133,6 +140,14 @@ class MagDisturbanceGate:
     stretches: int = 0
     armed: bool = False
     agreed_since: float = math.nan
+    log_fresh: bool = True
+    whole_log: bool = False
+
+    def new_log(self) -> None:
+        """A new log starts (another recording: another place perhaps): a stretch of the last log ends with it
+        (the field of the new one is judged afresh); the gate stays armed."""
+        self.active, self.whole_log, self.log_fresh = False, False, True
+        self.agreed_since = math.nan
 
     def disarm(self) -> None:
         """The magnetometer's model was restarted (a divergence): agreement with it must be seen anew before
@@ -195,6 +210,7 @@ class MagDisturbanceGate:
         if not use_mag or m_raw.shape[0] == 0:
             return use_mag and not self.active
         why = self.judge(x, sig, m_raw, a_raw, gravity, accel_is_gravity)
+        fresh, self.log_fresh = self.log_fresh, False
         if why is None:
             if math.isnan(self.agreed_since):
                 self.agreed_since = t
@@ -207,17 +223,19 @@ class MagDisturbanceGate:
         else:
             self.agreed_since = math.nan
             self.last_bad = t
-            if self.active and t - self.since > MAX_S:
+            if self.active and t - self.since > MAX_S and not self.whole_log:
                 self.active, self.armed = False, False
                 event("mag_disturbance", f"magnetometer disturbance not passing: the field has disagreed with the "
                                          f"model since t = {self.since:.1f} s ({why}); the magnetometer is used "
                                          "again and its calibration judged by the filter (a lasting change, or "
                                          f"its calibration wrong); {self.excluded} filter blocks were left out", t)
             elif not self.active and self.armed:
-                self.active, self.since, self.excluded = True, t, 0
+                self.active, self.since, self.excluded, self.whole_log = True, t, 0, fresh
                 self.stretches += 1
                 text = (f"magnetometer disturbance from t = {t:.1f} s ({why}): its updates are left out "
-                        f"until the field agrees with the model again for {CLEAR_S:.0f} s")
+                        f"until the field agrees with the model again for {CLEAR_S:.0f} s"
+                        + (" or the log ends (it disagrees from the log's start: another place or a lasting "
+                           "disturbance, as a file the batch leaves out of its magnetometer fit)" if fresh else ""))
                 event("mag_disturbance", text, t)
                 warnings.warn(text, MagDisturbanceWarning, stacklevel=3)
         if self.active:

@@ -99,7 +99,29 @@ class AccelModel:
 
 @dataclass(frozen=True)
 class MagModel:
-    """Magnetometer: raw = M_mag⁻¹ · Rᵀh_world(δ) + o_mag (eq. 1 inverted; h_world the unit field)."""
+    """Magnetometer: raw = M_mag⁻¹ · Rᵀh_world(δ) + o_mag (eq. 1 inverted; h_world the unit field).
+
+    ``misfit``: how far the start calibration's own fit left the calibrated field from the unit sphere, beyond
+    the sensor's noise — the batch's ``norm_std_percent`` / 100 (:func:`misfit_of`; 0 without one). On a real
+    hand-held session the field is not one constant vector (the hand carries the sensor through the room's
+    gradients, the session's files were recorded in different places): the MARG set's batch leaves 2.0 % of the
+    field, ~5–20× a block mean's noise, and a filter that weighed each block mean by its noise alone read that as
+    a wrong calibration (mean NIS ~450, divergences, restarts; docs/results.md). :meth:`variance` adds it."""
+
+    misfit: float = 0.0
+
+    def variance(self, var_mean: float, sig_sample: float, x: Array) -> float:
+        """R per axis (raw²) of a mean mag reading whose noise variance is ``var_mean`` (raw²): plus the part of
+        the start's misfit ε (relative to the field) that the per-sample noise ``sig_sample`` (raw) does not
+        explain, (ε F)² − σ², F = 1 / mean mag scale of x (n,) the field in raw units. A misfit within √2 of
+        the noise is the noise (a simulated session's fit): nothing is added. It does not average down over a
+        block or a rest, unlike the noise: a place's field error is common to all its samples."""
+        if self.misfit <= 0.0:
+            return var_mean
+        s0 = SENSOR_SLICE["mag"].start + 3
+        field = 3.0 / float(x[s0] + x[s0 + 1] + x[s0 + 2])
+        extra = (self.misfit * field) ** 2 - sig_sample**2
+        return var_mean + extra if extra > sig_sample**2 else var_mean
 
     def h(self, X: Array, h_body: Array, off: Offsets = Offsets(),
           model: tuple[Array, Array] | None = None) -> Array:
@@ -207,11 +229,12 @@ def motion_measurements(mod: Models, X: Array, f_body: Array, h_body: Array | No
 
 def rest_measurements(mod: Models, X: Array, R_nom: Array, sens: tuple[Array, Array, Array],
                       acc: RestAccumulator, W: tuple[Array, Array], off: tuple[Offsets, Offsets, Offsets],
-                      s_gyr: float) -> list[Measurement]:
+                      s_gyr: float, sig_mag: float = 0.0, x: Array | None = None) -> list[Measurement]:
     """A rest's measurements for the sigma points X (S, n) at the held attitude R_nom · exp([δθ]ₓ): the
     running means of accel and mag (:class:`.rest.RestAccumulator`, where it has them) and the gyro's
     zero rate. ``sens`` (o, M, M⁻¹) of accel then mag for every point; ``off`` the accel's, mag's and
-    gyro's offsets; ``s_gyr`` the mean gyro scale."""
+    gyro's offsets; ``s_gyr`` the mean gyro scale; ``sig_mag`` raw the mag's per-sample noise and x (n,) the state
+    for :meth:`MagModel.variance` (x None: the noise alone)."""
     S = X.shape[0]
     R_s = R_nom @ rodrigues_n(X[:, ATT])  # (S, 3, 3) attitude of every sigma point
     o, M, Minv = sens
@@ -225,7 +248,20 @@ def rest_measurements(mod: Models, X: Array, R_nom: Array, sens: tuple[Array, Ar
         meas.append(Measurement("accel", a_mean, Za, np.full(3, var_a)))
     if acc.nm:
         Zm = mod.mag.h(X, field_body(R_s, X[:, DIP]), off[1], (o[S:], Minv[S:]))
-        meas.append(Measurement("mag", acc.sm / acc.nm, Zm, np.full(3, 1.0 / acc.info("mag"))))
+        meas.append(Measurement("mag", acc.sm / acc.nm, Zm,
+                                np.full(3, 1.0 / acc.info("mag") if x is None
+                                        else mod.mag.variance(1.0 / acc.info("mag"), sig_mag, x))))
     Zg = mod.zr.h(X, off[2], T_reg, f_cal)
     meas.append(Measurement("rest", acc.gyro_mean(), Zg, mod.zr.variance(acc.info("gyro"), s_gyr)))
     return meas
+
+
+def misfit_of(init: object) -> float:
+    """:attr:`MagModel.misfit` of a start calibration: its batch magnetometer fit's ``norm_std_percent`` / 100
+    (``meta.batch.steps.mag.figures``), 0 where it has none (a cold start, a file without the batch's meta)."""
+    meta = getattr(init, "meta", None)
+    try:
+        v = float(meta["batch"]["steps"]["mag"]["figures"]["norm_std_percent"]) / 100.0  # type: ignore[index]
+    except (KeyError, TypeError, ValueError):
+        return 0.0
+    return v if math.isfinite(v) and v > 0.0 else 0.0

@@ -54,9 +54,19 @@ def replay(logs: list[ImuData], init: Calibration | None = None, config: UKFConf
     ``chunk``: feed the logs in blocks of this many IMU samples (None: each log in one call — the
     calibrator cuts its own filter blocks either way). ``trace_path``: write the trace CSV there.
     ``on_progress(samples_done, samples_total)``: called after every block fed, across all logs.
+    Burst-read stamps are replaced by a fitted sample clock first (:func:`.batch.clock.regularise_for_filter`,
+    a sentence in ``warnings`` for each).
     """
+    from ..batch.clock import regularise_for_filter
+
+    # burst-read stamps (a logger's read times) would set the filter's rate and blocks from the bursts and
+    # integrate the gyro on the wrong instants: the fitted clock the batch uses (issue 10)
+    fixed = [regularise_for_filter(d) for d in logs]
+    logs = [d for d, _ in fixed]
     total = int(sum(d.n_imu for d in logs))
-    return replay_stream(([d] for d in logs), init, config, chunk, trace_path, keep_state, on_progress, total)
+    res = replay_stream(([d] for d in logs), init, config, chunk, trace_path, keep_state, on_progress, total)
+    res.warnings = [n for _, notes in fixed for n in notes] + res.warnings
+    return res
 
 
 def replay_stream(logs: Iterable[Iterable[ImuData]], init: Calibration | None = None,

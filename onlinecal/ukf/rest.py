@@ -226,9 +226,11 @@ class RestAccumulator:
                    float(d.get("ttw", 0.0)), a["smt"], bool(d.get("skipped", False)))
 
     def sequential_nis(self, B: Blocks, b: int, n: dict[str, float], use_acc: bool,
-                       use_mag: bool) -> list[tuple[str, float]]:
+                       use_mag: bool, mag_misfit: float = 0.0) -> list[tuple[str, float]]:
         """Block ``b``'s innovation against what the rest so far predicts (``post``): the NIS a per-block
-        filter would record, per sensor (so that the NIS windows fill and judge as in motion)."""
+        filter would record, per sensor (so that the NIS windows fill and judge as in motion). ``mag_misfit``
+        (raw²): the start calibration's misfit beyond the noise (:meth:`.measurements.MagModel.variance`), which
+        the rest's prediction does not absorb (it is in R, not in the state)."""
         L, n_m = int(B.hi[b] - B.lo[b]), int(B.mhi[b] - B.mlo[b])
         out = []
         for s, mean, ok, cnt in (("accel", B.a_mean[b], use_acc, L), ("mag", B.m_mean[b], use_mag, n_m)):
@@ -237,6 +239,8 @@ class RestAccumulator:
                 nu = mean - post[0]
                 try:
                     var = n[s] ** 2 / cnt + self.floor(s)  # a block also carries the rest's wander
+                    if s == "mag":
+                        var += mag_misfit
                     out.append((s, float(nu @ np.linalg.solve(post[1] + np.eye(3) * var, nu))))
                 except np.linalg.LinAlgError:
                     pass

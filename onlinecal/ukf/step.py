@@ -260,7 +260,8 @@ def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T:
         cal._coverage.add_field(calibrated(cal, "mag", B.m_mean[b]))
     meas = motion_measurements(
         cal._models, X, pred.f_body, pred.h_body, sens, None if clip["accel"] else B.a_mean[b],
-        B.m_mean[b] if use_mag else None, n["accel"] / math.sqrt(t.size), n["mag"] ** 2 / max(n_m, 1),
+        B.m_mean[b] if use_mag else None, n["accel"] / math.sqrt(t.size),
+        cal._models.mag.variance(n["mag"] ** 2 / max(n_m, 1), n["mag"], cal.x),
         (cal._Wm, cal._Wc), rate, (offsets(cal, "accel", held["accel"]), offsets(cal, "mag", held["mag"])),
         T_reg, var_v)
     if not meas:
@@ -299,7 +300,8 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
     acc.skipped = skip
     k = cal._div.count
     if not skip:  # a skipped block adds its time (its process noise) and nothing else: no NIS, no means
-        for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag):
+        misfit = cal._models.mag.variance(0.0, n["mag"], acc.x) if use_mag else 0.0
+        for s, nis in acc.sequential_nis(B, b, n, not clip["accel"], use_mag, misfit):
             cal._nis_record(s, nis, tl)
         if cal._div.count != k:
             return  # a divergence: the restarted state stands (not the rest's first state)
@@ -316,7 +318,7 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
     x0, P0 = acc.x, acc.P + np.diag(acc.q)
     cal.x, cal.P, cal.R_nom = x0.copy(), P0, acc.R_nom
     if fastpath.rest_applies(cal):  # the rest's update in one compiled call (.fastpath)
-        fastpath.rest_update_fast(cal, acc, x0, P0, held, first, k, tl)
+        fastpath.rest_update_fast(cal, acc, x0, P0, held, first, k, tl, n["mag"])
         return
     try:
         X = sigma_points_of(cal)
@@ -327,7 +329,7 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
     sens = sensor_models(np.concatenate([X[:, SENSOR_SLICE["accel"]], X[:, SENSOR_SLICE["mag"]]]))
     off = (offsets(cal, "accel", held["accel"]), offsets(cal, "mag", held["mag"]), offsets(cal, "gyro", True))
     meas = rest_measurements(cal._models, X, cal.R_nom, sens, acc, (cal._Wm, cal._Wc), off,
-                             float(np.mean(cal.x[index("gyro", "scale")])))
+                             float(np.mean(cal.x[index("gyro", "scale")])), n["mag"], x0)
     res = gated_update(cal, X - x0, x0, P0, meas, True, tl, record=first, post=True)
     acc.post = res.post
     if cal._div.count == k:  # a divergence in the update also ended the running rest

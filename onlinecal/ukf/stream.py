@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from ..batch.clock import is_burst_stamped
 from . import fastpath
 from .blocks import Blocks, block_stats, cut_blocks
 from .config import MIN_SAMPLES_DETECT
@@ -32,7 +33,15 @@ def start_log(cal: OnlineCalibrator, final: bool) -> bool:
     if buf.t.size < k and not (final and buf.t.size >= 2):
         return False
     if cal._rate is None:
-        cal._rate = float(1.0 / np.median(np.diff(buf.t[:k])))
+        t = buf.t[:k]
+        cal._rate = float(1.0 / np.median(np.diff(t)))
+        if is_burst_stamped(t):
+            # read times in bursts (a replay regularises them first; a live source cannot): the median Δt is
+            # the burst's, ~10× the rate — the blocks would be 10× too long and the noise per sample wrong
+            cal._rate = float((t.size - 1) / (t[-1] - t[0]))
+            cal._event("clock", f"IMU stamps come in bursts (median Δt {1e3 * float(np.median(np.diff(t))):.1f} ms "
+                       f"against a mean period of {1e3 / cal._rate:.1f} ms): the rate is taken from the mean "
+                       "period; the stamps are used as they are", float(t[-1]))
         cal._L = max(1, int(round(cal.config.block_s * cal._rate)))
     j = int(np.searchsorted(buf.tm, buf.t[min(k, buf.t.size) - 1], side="right"))
     cal._apply_lattice(cal._lat.detect(buf.w[:k], buf.a[:k], buf.m[:j]))

@@ -178,3 +178,41 @@ def test_marg_set_online_gyro_from_its_batch_closes_the_turns_as_well_as_the_bat
     assert h["verdict"] == "degraded"  # the gyro's rail; the cross-check with the batch's narrow mag σ
     # the accelerometer terms hand motion pulled are said to be from motion alone (export leaves them out)
     assert "accel.bias.x" in h["checks"]["motion_only"]
+
+
+@pytest.mark.slow
+def test_a_checkpoint_inside_a_log_left_out_for_its_field_resumes_to_the_same_bits() -> None:
+    """Session 16's new state — the recurring-top rail (tilt-sphere's clipped gyro), the gate's whole-log stretch
+    (unmoved-x-pointing-up, +32 %), the start's mag misfit (from the batch's meta) — survives a checkpoint taken
+    in the middle of the left-out log: the resumed run ends with the same bits and events as the unbroken one."""
+    import json
+    import warnings
+
+    from onlinecal.batch import run_batch
+
+    names = ("tilt-sphere", "unmoved-x-pointing-up", "unmoved-z-pointing-left")
+    logs = [regularise_for_filter(read_log(MARG / f"{n}.csv"))[0] for n in names]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        init = run_batch([read_log(p) for p in sorted(MARG.glob("*.csv"))]).calibration
+
+        def run(split: bool) -> OnlineCalibrator:
+            cal = OnlineCalibrator(init)
+            for k, d in enumerate(logs):
+                cal.new_log()
+                if k == 1 and split:
+                    h = d.n_imu // 2
+                    cal.feed(d.slice_imu(0, h))
+                    assert cal._magd.whole_log and cal._magd.active
+                    cal = OnlineCalibrator.from_state(json.loads(json.dumps(cal.get_state())))
+                    cal.feed(d.slice_imu(h, d.n_imu))
+                else:
+                    cal.feed(d)
+                cal.flush()
+            return cal
+
+        a, b = run(False), run(True)
+    assert a._models.mag.misfit == b._models.mag.misfit > 0.01
+    assert "gyro" in a._rails.rail and a._rails.rail == b._rails.rail
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.P, b.P)
+    assert [(e["kind"], e["t"]) for e in a.events] == [(e["kind"], e["t"]) for e in b.events]

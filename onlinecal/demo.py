@@ -30,16 +30,6 @@ def _online(logs: list, init: Calibration, on_progress: Any = None) -> tuple[Any
     return replay_chunked(logs, init, on_progress=on_progress), ""
 
 
-def _warm_kernels() -> None:
-    """On a first run the filter's kernels are compiled in worker processes while the session is simulated
-    and calibrated here (onlinecal.ukf.warmup); the filter waits for them when it starts."""
-    try:
-        from .ukf import warmup
-    except ImportError:
-        return
-    warmup.start()
-
-
 def _plots(out: Path, data, batch: Calibration) -> list[str]:
     try:
         from .plots import norms_overview
@@ -59,7 +49,10 @@ def run_demo(out: Path, seed: int = 0) -> int:
     """Exit status: 0, or 4/5 when the batch or online result is degraded/failed (:mod:`onlinecal.health`)."""
     t_start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    _warm_kernels()
+    from .ukf import warmup
+
+    # a first run: the filter's kernels compile in worker processes while the session is simulated and calibrated
+    warmup.start()
     with stages(["simulate", "write .tlog", "read back", "batch", "online filter", "report"], desc="demo") as st:
         st.next("simulate")
         sim = simulate("paper", seed)

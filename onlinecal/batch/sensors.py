@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -402,14 +403,22 @@ def _prior_undetermined(sig: dict[str, list[float]], Ms: Array, Q: Array, rng: n
     prior = soft_iron_prior_sigma(Ms, Q, rng)
     mbar = float(np.trace(Ms) / 3.0)
     prior["bias"] = np.full(3, 0.6 / mbar)
+    return _above_half_prior(sig, prior, whole_terms=False)
+
+
+def _above_half_prior(sig: dict[str, list[float]], prior: dict[str, Any], whole_terms: bool) -> list[str]:
+    """Terms of bias, scale and ξ whose σ (``sig``) stayed above half their prior σ (``prior``: per axis (3,) or one
+    number): a term without σ by its name alone ("scale"), else its axes ("bias.z"); with ``whole_terms`` a term
+    whose three axes are all above also by its name alone (its σ are then dropped: :func:`.pipeline._drop_sigma`)."""
     out = []
     for p in ("bias", "scale", "xi"):
-        if p not in sig:
+        s = sig.get(p)
+        if s is None:
             out.append(p)
             continue
-        for i, a in enumerate("xyz"):
-            if not float(sig[p][i]) <= 0.5 * float(prior[p][i]):
-                out.append(f"{p}.{a}")
+        lim = np.broadcast_to(np.asarray(prior[p], float), (3,))
+        axes = [a for i, a in enumerate("xyz") if not float(s[i]) <= 0.5 * float(lim[i])]
+        out += [p] if whole_terms and len(axes) == 3 else [f"{p}.{a}" for a in axes]
     return out
 
 
@@ -475,7 +484,7 @@ def fit_accelerometer(
     })
     sig = propagate_sigma(fit.o, fit.M, cov9, Q, sig_a, rng)
     if model != "full":
-        und = _acc_undetermined(sig)
+        und = _above_half_prior(sig, ACC_PRIOR_SIGMA, whole_terms=True)
         if und:
             rep.figures["undetermined"] = sorted(set(rep.figures.get("undetermined", [])) | set(und))
             rep.warnings.append(
@@ -548,17 +557,6 @@ def reduced_model_cov(a: Array, g: float, fit: NormFit, model: str, noise_var: A
     # first-order term wherever that one is not zero
     out[:3, :3] += np.eye(3) * (0.125 * g * float(np.trace(Su)) / mbar**2) ** 2
     return 0.5 * (out + out.T)
-
-
-def _acc_undetermined(sig: dict[str, list[float]]) -> list[str]:
-    """The accelerometer terms of a reduced fit whose σ stayed above half :data:`ACC_PRIOR_SIGMA` (a term with all
-    three axes so: its name alone, e.g. "scale"; else the axes, "bias.z")."""
-    out = []
-    for p in ("bias", "scale", "xi"):
-        s = sig.get(p)
-        axes = [a for i, a in enumerate("xyz") if s is None or not float(s[i]) <= 0.5 * ACC_PRIOR_SIGMA[p]]
-        out += [p] if len(axes) == 3 else [f"{p}.{a}" for a in axes]
-    return out
 
 
 __all__ = ["fit_magnetometer", "fit_accelerometer", "static_means", "StepReport", "sqrtm_spd", "sqrt_psd"]

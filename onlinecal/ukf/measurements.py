@@ -229,12 +229,12 @@ def motion_measurements(mod: Models, X: Array, f_body: Array, h_body: Array | No
 
 def rest_measurements(mod: Models, X: Array, R_nom: Array, sens: tuple[Array, Array, Array],
                       acc: RestAccumulator, W: tuple[Array, Array], off: tuple[Offsets, Offsets, Offsets],
-                      s_gyr: float, sig_mag: float = 0.0, x: Array | None = None) -> list[Measurement]:
+                      s_gyr: float, sig_mag: float, x: Array) -> list[Measurement]:
     """A rest's measurements for the sigma points X (S, n) at the held attitude R_nom · exp([δθ]ₓ): the
     running means of accel and mag (:class:`.rest.RestAccumulator`, where it has them) and the gyro's
     zero rate. ``sens`` (o, M, M⁻¹) of accel then mag for every point; ``off`` the accel's, mag's and
     gyro's offsets; ``s_gyr`` the mean gyro scale; ``sig_mag`` raw the mag's per-sample noise and x (n,) the state
-    for :meth:`MagModel.variance` (x None: the noise alone)."""
+    for :meth:`MagModel.variance`."""
     S = X.shape[0]
     R_s = R_nom @ rodrigues_n(X[:, ATT])  # (S, 3, 3) attitude of every sigma point
     o, M, Minv = sens
@@ -249,8 +249,7 @@ def rest_measurements(mod: Models, X: Array, R_nom: Array, sens: tuple[Array, Ar
     if acc.nm:
         Zm = mod.mag.h(X, field_body(R_s, X[:, DIP]), off[1], (o[S:], Minv[S:]))
         meas.append(Measurement("mag", acc.sm / acc.nm, Zm,
-                                np.full(3, 1.0 / acc.info("mag") if x is None
-                                        else mod.mag.variance(1.0 / acc.info("mag"), sig_mag, x))))
+                                np.full(3, mod.mag.variance(1.0 / acc.info("mag"), sig_mag, x))))
     Zg = mod.zr.h(X, off[2], T_reg, f_cal)
     meas.append(Measurement("rest", acc.gyro_mean(), Zg, mod.zr.variance(acc.info("gyro"), s_gyr)))
     return meas

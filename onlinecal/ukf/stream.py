@@ -34,12 +34,13 @@ def start_log(cal: OnlineCalibrator, final: bool) -> bool:
         return False
     if cal._rate is None:
         t = buf.t[:k]
-        cal._rate = float(1.0 / np.median(np.diff(t)))
+        med = float(np.median(np.diff(t)))
+        cal._rate = 1.0 / med
         if is_burst_stamped(t):
             # read times in bursts (a replay regularises them first; a live source cannot): the median Δt is
             # the burst's, ~10× the rate — the blocks would be 10× too long and the noise per sample wrong
             cal._rate = float((t.size - 1) / (t[-1] - t[0]))
-            cal._event("clock", f"IMU stamps come in bursts (median Δt {1e3 * float(np.median(np.diff(t))):.1f} ms "
+            cal._event("clock", f"IMU stamps come in bursts (median Δt {1e3 * med:.1f} ms "
                        f"against a mean period of {1e3 / cal._rate:.1f} ms): the rate is taken from the mean "
                        "period; the stamps are used as they are", float(t[-1]))
         cal._L = max(1, int(round(cal.config.block_s * cal._rate)))

@@ -264,14 +264,21 @@ MARG = REPO.parent / "shared" / "data" / "marg-set1"
 @pytest.mark.skipif(not (MARG / "tilt-sphere.csv").is_file(), reason="measured data ../shared/data absent")
 def test_issue_row_replay_tilt_sphere_is_not_trusted(tmp_path: Path) -> None:
     """`replay marg-set1/tilt-sphere.csv` printed gyro.scale.y 0.602 with no warning and exit 0, its JSON
-    holding a magnetometer NIS mean of 60 589. Now: failed, exit 5, the reasons on stderr and in the JSON."""
+    holding a magnetometer NIS mean of 60 589. Now its gyro scales are within 1 % of 1 (the batch of all 15 files:
+    1.0016, 0.9988, 0.9982) and the verdict is not ok, with the reasons on stderr and in the JSON: degraded, exit 4
+    (until session 17 failed, exit 5, on the accelerometer's gate rejecting 67 % of its updates: the platform model
+    taking a hand's accelerations for gravity; the hand is now detected as a vehicle after 5 drops,
+    tests/test_vehicle_handheld.py, and the magnetometer's NIS — 8× its expectation — and the rail remain)."""
     out = tmp_path / "t.json"
     r = cli("replay", str(MARG / "tilt-sphere.csv"), "--json", str(out), "-q", timeout=900)
-    h = json.loads(out.read_text())["health"]
-    assert r.returncode == 5 and h["verdict"] == "failed", r.stderr
+    res = json.loads(out.read_text())
+    h = res["health"]
+    assert r.returncode == 4 and h["verdict"] == "degraded", r.stderr
+    assert all(abs(s - 1.0) < 0.01 for s in res["gyro"]["scale"]), res["gyro"]["scale"]
     text = " | ".join(h["reasons"])
-    assert "mag: mean NIS" in text and "rail" in text and "gate rejected" in text, text
-    assert "health of the online calibration: failed" in r.stderr
+    assert "mag: mean NIS" in text and "rail" in text and "not to be trusted" in text, text
+    assert "gate dropped" in res["meta"]["online"]["observability"]["vehicle"]["reason"]
+    assert "health of the online calibration: degraded" in r.stderr
 
 
 def test_diagnose_prints_estimated_parameters_and_gain() -> None:

@@ -372,7 +372,8 @@ def test_the_inline_nis_bookkeeping_equals_gated_bookkeeping(vehicle: bool) -> N
     against step.gated_bookkeeping on the UpdateResult it replaced, block by block: ok, soft-gated and
     dropped updates of accel and mag, accel alone, mag alone, windows completing (a run far above the band
     declares a divergence), a vehicle-inflated accel R, and the numerical failures (NaN, inf, a negative
-    NIS) that declare one at once — the same NIS statistics, events and divergences."""
+    NIS) that declare one at once — the same NIS statistics, events (the vehicle detector switched on by the accel
+    drops included) and divergences."""
     from onlinecal.ukf import step
     from onlinecal.ukf.kernels_unscented import _STATUS
     from onlinecal.ukf.unscented import UpdateResult
@@ -403,7 +404,7 @@ def test_the_inline_nis_bookkeeping_equals_gated_bookkeeping(vehicle: bool) -> N
                 if status[k] >= 0:
                     res.nis.append((s, float(nis[k]), _STATUS[int(status[k])]))
             k_div = b._div.count
-            step.gated_bookkeeping(b, res, tl, True, k_v)
+            step.gated_bookkeeping(b, res, tl, True, k_v, motion=True)
             if b._div.count == k_div:
                 step.commit_folded(b, np.eye(3), res.x, res.P, True, tl)
             assert a._nis.stats == b._nis.stats and a._n_blocks == b._n_blocks, blk

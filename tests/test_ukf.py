@@ -319,9 +319,13 @@ def test_saturated_gyro_is_skipped_not_integrated(short_paper):
     g = res.calibration.gyro
     assert np.all(np.abs(g.scale - truth.gyro.scale) < 3 * np.asarray(g.sigma["scale"]))
     assert _consistent_share(res.calibration, truth) >= 0.95
-    # integrated as if true, the clipped rate would under-turn every peak: compare with the rail ignored
+    # integrated as if true, the clipped rate would under-turn every peak: compare with the rail ignored. That run
+    # diverges (the magnetometer's NIS runs away; until session 17 it also ended with accel terms 17σ off, its
+    # 56 % within 3σ: now the gate's drops take the under-turned attitude for unmodelled motion, a vehicle, and
+    # hold the accelerometer's terms, so its restarts leave them at a wide σ)
     res_raw = replay([sim.data], init, UKFConfig(init_inflation=1.0, rail_min={"gyro": 1e9, "accel": 1e9}))
-    assert _consistent_share(res_raw.calibration, truth) < _consistent_share(res.calibration, truth)
+    assert [e for e in res_raw.events if e["kind"] == "divergence"]
+    assert any(e["kind"] == "vehicle" and "gate dropped" in e["detail"] for e in res_raw.events)
 
 
 @pytest.mark.slow

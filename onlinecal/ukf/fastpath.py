@@ -602,7 +602,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
             lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, np.asarray(cal._earth[0]),
             c.vehicle_accel_tau, cal._earth[1], jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
-            mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates, lay.consider,
+            mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates, motion_consider(cal),
             float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
         if stage == 0:
             cal._diverged("covariance is not positive definite", tl)
@@ -646,8 +646,15 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         var_a += var_v
     x, P, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
-        hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, lay.consider, float(c.update_damping), cal.R_nom, yaw)
+        hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, motion_consider(cal), float(c.update_damping), cal.R_nom,
+        yaw)
     _finish_motion(cal, st, x, P, nis.tolist(), status.tolist(), solved, R_new, fine, use_acc, has_mag, var_v, tl)
+
+
+def motion_consider(cal: OnlineCalibrator) -> NDArray[np.bool_]:
+    """The consider mask of a motion update: the accelerometer's terms held too once a vehicle is detected
+    (:attr:`.state.StateLayout.consider_vehicle`)."""
+    return cal.lay.consider_vehicle if cal._vehicle.active else cal.lay.consider
 
 
 def _field_dir(x: Array, m_mean: Array) -> tuple[float, float, float]:
@@ -669,6 +676,7 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
         raise np.linalg.LinAlgError("Singular matrix")
     k_div = cal._div.count
     k_v = var_v / cal.config.vehicle_accel_sigma**2 if var_v > 0 else 0.0
+    feed_gate = cal.config.vehicle == "auto" and not cal._vehicle.active
     # .step.gated_bookkeeping's loop on the kernel's values as Python numbers, without the
     # UpdateResult it reads them from (issue 15): the same records in the same order
     k = 0
@@ -682,6 +690,8 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
         if not (v >= NIS_NEGATIVE_TOL and v != math.inf):  # divergence.nis_failure (NaN fails the first)
             cal._diverged(f"{s}: {nis_failure(v)}", tl)
             break
+        if s == "accel" and feed_gate:
+            st.vehicle_event(cal, cal._vehicle.gate(code == 2, tl), tl)
         if code == 2:  # dropped: counted, out of the windows
             cal._nis.reject(s, k_v)
             continue

@@ -344,22 +344,29 @@ def sigma_points_of(cal: OnlineCalibrator) -> Array:
 def gated_update(cal: OnlineCalibrator, Y: Array, x_pred: Array, P_pred: Array, meas: list[Measurement],
                  static: bool, t: float, record: bool = True, post: bool = False, damp: float = 0.0,
                  inflated: float = 0.0) -> UpdateResult:
-    """:func:`.unscented.update` with this filter's gates and consider states, then the NIS
-    bookkeeping in measurement order (``record``: the NIS values enter the windows; ``inflated`` = k > 0:
-    the accel R carried the vehicle disturbance, :meth:`.health.NisMonitor.record`)."""
-    res = update(Y, x_pred, P_pred, meas, cal._Wm, cal._Wc, Gating(cal._gates, static),
-                 cal.lay.consider, damp, post)
-    gated_bookkeeping(cal, res, t, record, inflated)
+    """:func:`.unscented.update` with this filter's gates and consider states (in motion
+    :func:`.fastpath.motion_consider`'s), then the NIS bookkeeping in measurement order (``record``: the NIS
+    values enter the windows; ``inflated`` = k > 0: the accel R carried the vehicle disturbance,
+    :meth:`.health.NisMonitor.record`)."""
+    consider = cal.lay.consider if static else fastpath.motion_consider(cal)
+    res = update(Y, x_pred, P_pred, meas, cal._Wm, cal._Wc, Gating(cal._gates, static), consider, damp, post)
+    gated_bookkeeping(cal, res, t, record, inflated, motion=not static)
     return res
 
 
-def gated_bookkeeping(cal: OnlineCalibrator, res: UpdateResult, t: float, record: bool, inflated: float) -> None:
-    """The NIS bookkeeping of :func:`gated_update` for its result ``res``, in measurement order."""
+def gated_bookkeeping(cal: OnlineCalibrator, res: UpdateResult, t: float, record: bool, inflated: float,
+                      motion: bool = False) -> None:
+    """The NIS bookkeeping of :func:`gated_update` for its result ``res``, in measurement order; in ``motion``
+    each accel update's drop (or not) also goes to the vehicle detector (:meth:`.vehicle.VehicleDetector.gate`:
+    linear accelerations the norm test missed)."""
+    feed_gate = motion and cal.config.vehicle == "auto" and not cal._vehicle.active
     for s, nis, status in res.nis:
         fail = divergence.nis_failure(nis)
         if fail is not None:  # passes both the gate and the windows otherwise
             cal._diverged(f"{s}: {fail}", t)
             return
+        if s == "accel" and feed_gate:
+            vehicle_event(cal, cal._vehicle.gate(status == "drop", t), t)
         if status == "drop":
             # motion the model has no term for (linear acceleration): an outlier, not a statistic of
             # the filter's consistency — dropped and counted, kept out of the NIS windows

@@ -140,6 +140,16 @@ def levenberg_marquardt(fun: Callable[[Array], tuple[Array, Array]], p: Array, m
     return p
 
 
+def psd_excess(c_new: Array, cov: Array) -> Array:
+    """The positive part of ``c_new`` − ``cov`` (both (P, P)): what a second covariance estimate adds beyond the
+    first, direction by direction (eigen-decomposition of the symmetrised difference, negative parts dropped),
+    so that ``cov`` + the excess covers both."""
+    d = 0.5 * ((c_new - cov) + (c_new - cov).T)
+    ev, V = np.linalg.eigh(d)
+    out: Array = (V * np.maximum(ev, 0.0)) @ V.T
+    return out
+
+
 def fit_norm_lm(
     x: Array,
     r: float,

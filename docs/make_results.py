@@ -1134,8 +1134,16 @@ def online_marg_section() -> list[str]:
         "_file_jackknife_cov`) and says so: on this set the bias σ 3e-4 → 4e-3 of the raw unit, and two fits on "
         "disjoint halves of the files (odd/even) agree within 1.4σ where the per-sample σ called them 27σ apart "
         "(`tests/test_mag_cluster_sigma.py`; drawn hand-held files in fields 2 % apart: the centre's z RMS 11.7 → "
-        "1.2). The cross-check now names no magnetometer term; what it still names is the gyro's ξ_x, whose batch "
-        "σ comes from the same files through eq. 36's reference vectors (not widened: a finding, not fixed).", "",
+        "1.2). The cross-check now names no magnetometer term; it still names the gyro's ξ_x (online 0.0001 against "
+        "the batch's 0.0196 ± 0.0023). **Found, not fixed:** the batch's any-rotation gyro fit (eq. 36 over 0.5-s "
+        "windows of every file) has the same fault — its σ take a file's windows for independent draws. Batches on "
+        "the odd and on the even files differ by up to 0.10 rad in α and ξ (31σ with those σ); a delete-one-file "
+        "jackknife varies 597× more than the windows' σ in its worst direction (one file, "
+        "`tilt-around-z-pointing-up`, carries the x alignment: without it G moves by 0.043) and would widen α_x and "
+        "ξ_x to σ ≈ 0.05 rad (halves then ≤ 7σ apart). Tried in session 17 and not landed: the online filter "
+        "started from that batch, its gauge (the gyro's α, held) now 2.8° wide, diverged twice on these files "
+        "(accelerometer NIS at rests) and restarted cold. The batch's gyro alignment from these hand-held files is "
+        "known to a few degrees, not the 0.1° its σ claim.", "",
     ]
 
 

@@ -1116,7 +1116,7 @@ def online_marg_section() -> list[str]:
         "0.20 → 0.77 m/s², bench-file ‖a‖ − g RMS 0.72 m/s². Three faults, each measured here: (a) in `pan-x` the "
         "gate dropped 148 of 338 accelerometer updates as motion the platform model lacks, and those it let through "
         "walked the bias — the norm test could not see the hand while the scale's σ was the prior's 5 %; (b) once a "
-        "push did switch the vehicle detector on (in the fourth file), the rest test judged every later file "
+        "push did switch the vehicle detector on (in the third file, `pan-z`), the rest test judged every later file "
         "against the accelerometer's *spec* noise (a rule for vibrating vehicles; MARG's noise is 2.3× its spec), "
         "so the three bench files had no rest and the accelerometer was never a gravity reference; (c) with the "
         "vehicle on, the magnetometer's tilt corrections (NIS 5–14 in motion) still moved the accelerometer's terms "

@@ -984,24 +984,17 @@ def imutk_section() -> list[str]:
             table(["quantity", "largest difference", "bar"], rows), ""]
 
 
-# The online gyro on MARG set 1 with session 15's code (8c2066a): `onlinecal replay` of the 15 files with its default
-# batch start, closure by ../shared/tools/gyro_closure.py with the batch's accel + mag — measured in session 16
-ONLINE_BEFORE_8C2066A = {
-    "pan-x-pointing-forward.csv": 9.9, "pan-y-pointing-left.csv": 4.3, "pan-z-pointing-up.csv": 6.0,
-    "rotate-360ccw-around-x-pointing-forward.csv": 15.9, "rotate-360ccw-around-y-pointing-left.csv": 26.8,
-    "rotate-360ccw-around-z-pointing-up.csv": 24.8, "tilt-around-x-pointing-forward.csv": 7.6,
-    "tilt-around-x-pointing-up.csv": 15.1, "tilt-around-y-pointing-left.csv": 25.5,
-    "tilt-around-y-pointing-up.csv": 2.1, "tilt-around-z-pointing-up.csv": 7.2, "tilt-sphere.csv": 27.6,
-}
-
-# The same with session 16's final code (06f9987), measured in session 17 (its accelerometer: /tmp runs of the same
-# command; held-out quiet-sample and bench-file ‖a‖ − g RMS in m/s², as _accel_norm_rms below computes them)
-ONLINE_SESSION16_06F9987 = {
-    "pan-x-pointing-forward.csv": 8.7, "pan-y-pointing-left.csv": 2.4, "pan-z-pointing-up.csv": 4.1,
-    "rotate-360ccw-around-x-pointing-forward.csv": 11.3, "rotate-360ccw-around-y-pointing-left.csv": 11.1,
-    "rotate-360ccw-around-z-pointing-up.csv": 8.9, "tilt-around-x-pointing-forward.csv": 4.6,
-    "tilt-around-x-pointing-up.csv": 1.8, "tilt-around-y-pointing-left.csv": 6.0,
-    "tilt-around-y-pointing-up.csv": 1.9, "tilt-around-z-pointing-up.csv": 3.1, "tilt-sphere.csv": 37.3,
+# The online gyro on MARG set 1 with earlier code: `onlinecal replay` of the 15 files with its default batch start,
+# closure by ../shared/tools/gyro_closure.py with the batch's accel + mag — per file (session 15's code, 8c2066a,
+# measured in session 16; session 16's final code, 06f9987, measured in session 17). Session 16's accelerometer,
+# from the same runs: held-out quiet-sample and bench-file ‖a‖ − g RMS in m/s², as _accel_norm_rms computes them
+ONLINE_EARLIER = {  # file: (8c2066a, 06f9987)
+    "pan-x-pointing-forward.csv": (9.9, 8.7), "pan-y-pointing-left.csv": (4.3, 2.4),
+    "pan-z-pointing-up.csv": (6.0, 4.1), "rotate-360ccw-around-x-pointing-forward.csv": (15.9, 11.3),
+    "rotate-360ccw-around-y-pointing-left.csv": (26.8, 11.1), "rotate-360ccw-around-z-pointing-up.csv": (24.8, 8.9),
+    "tilt-around-x-pointing-forward.csv": (7.6, 4.6), "tilt-around-x-pointing-up.csv": (15.1, 1.8),
+    "tilt-around-y-pointing-left.csv": (25.5, 6.0), "tilt-around-y-pointing-up.csv": (2.1, 1.9),
+    "tilt-around-z-pointing-up.csv": (7.2, 3.1), "tilt-sphere.csv": (27.6, 37.3),
 }
 ACCEL_SESSION16_06F9987 = (0.517, 0.724)
 
@@ -1047,7 +1040,7 @@ def online_marg_section() -> list[str]:
         data = gc.read_csv(str(fpath))
         b, turned = gc.closure(data, out["batch"])
         o, _ = gc.closure(data, hybrid)
-        before, s16 = ONLINE_BEFORE_8C2066A[fpath.name], ONLINE_SESSION16_06F9987[fpath.name]
+        before, s16 = ONLINE_EARLIER[fpath.name]
         cb.append(b)
         co.append(o)
         cp.append(before)

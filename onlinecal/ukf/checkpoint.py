@@ -243,7 +243,7 @@ def _set_state_v2(f: Any, d: dict[str, Any]) -> None:
                             {k: [(float(r[0]), int(r[1])) for r in v] for k, v in d["run"].items()},
                             {k: bool(v) for k, v in d["clip_on"].items()})
     f._T0 = d["T0"]
-    f._vehicle = VehicleDetector(c.vehicle_vibration_sigma, c.vehicle_dev_min, drop_min=c.vehicle_gate_drops)
+    f._vehicle = VehicleDetector.of(c)
     f._vehicle.set_state(d.get("vehicle", {}))
     f._coverage = MotionCoverage()
     f._coverage.set_state(d.get("coverage", {}))

@@ -101,7 +101,7 @@ class OnlineCalibrator:
         self._lat = Lattice()  # per log: value lattice of each sensor
         self._rails = RailDetector()
         self._T0: float | None = None
-        self._vehicle = VehicleDetector(c.vehicle_vibration_sigma, c.vehicle_dev_min, drop_min=c.vehicle_gate_drops)
+        self._vehicle = VehicleDetector.of(c)
         if c.vehicle == "vehicle":
             self._vehicle.active, self._vehicle.since, self._vehicle.reason = True, 0.0, "configured"
         self._coverage = MotionCoverage()

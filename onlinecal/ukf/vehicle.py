@@ -28,13 +28,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..advice import face_words, faces_advice, faces_at_rest, missing_faces
 from .layout import ATT
+
+if TYPE_CHECKING:
+    from .config import UKFConfig
 
 Array = NDArray[np.float64]
 AXES = ("x", "y", "z")
@@ -73,6 +76,11 @@ class VehicleDetector:
     drop_min: int = 5
     _dev_run: int = 0
     _drops: list[bool] = field(default_factory=list)
+
+    @classmethod
+    def of(cls, config: UKFConfig) -> VehicleDetector:
+        """The detector a :class:`.config.UKFConfig` asks for (its thresholds; not yet on)."""
+        return cls(config.vehicle_vibration_sigma, config.vehicle_dev_min, drop_min=config.vehicle_gate_drops)
 
     def update(self, acc_noise_sigma: float, dev: float | None, t: float) -> str | None:
         """Feed one block: measured accel σ (m/s², NaN if unknown), unexplained |f|−g deviation (m/s²;

@@ -1139,7 +1139,18 @@ def online_marg_section() -> list[str]:
         "0.04/0.02 to 0.43/0.43 rad with σ 0.04 — a confident wrong pair — then diverged twice (magnetometer, then "
         "accelerometer NIS) and restarted cold. So the online filter, too, cannot be trusted with a wide prior on "
         "the gyro's x alignment from hand pans (a finding for the filter's nonlinearity, not fixed). The batch's "
-        "gyro alignment from these hand-held files is known to a few degrees, not the 0.1° its σ claim.", "",
+        "gyro alignment from these hand-held files is known to a few degrees, not the 0.1° its σ claim. "
+        "**Session 18** (`pan-x` alone from the batch with the gyro's α and ξ σ set to 0.05 rad): not the "
+        "unscented transform's spread — α 0.3, 0.5, 0.7 and 1.0 all end at α_x 0.37–0.38, ξ_x 0.50 — nor the "
+        "vehicle switch (`vehicle` \"vehicle\" and \"platform\" the same). With the magnetometer's terms held "
+        "at the batch's (σ 1e-6) the file reads α_x 0.39 ± 0.03 at a mag NIS of 3.2, consistent within the file; "
+        "with them wide (σ 0.05 rad) the gyro becomes the gauge and ξ_x takes 0.19 ± 0.08. So this file's own "
+        "data put the gyro's z axis ~20° from where the session's 15 files put it relative to the magnetometer — "
+        "not physical for one rigid board. Two suspects: a field distortion in this file (the files' field norms "
+        "differ by −3.2 … +2.6 %), which the model has no term for, and the null-space leak found this session "
+        "(docs/flight.md, *Started from the truth*: the unscented update, repeated at a geometry that changes "
+        "little, reads the curvature of a direction the data cannot see as information). Started from the batch, "
+        "the health verdict names it (\"moved from its start calibration beyond both σ\", failed).", "",
     ]
 
 

@@ -19,7 +19,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -309,15 +309,18 @@ def _warm_kernels() -> None:
 
 
 def online_health(res: Any, logs: Sequence[Any] | None = None, mag_start: str | None = None,
-                  start: Any = None) -> dict[str, Any]:
+                  start: Any = None, digest: Any = None) -> dict[str, Any]:
     """Health of an online result (replay, run, fleet): NIS, events, observability, ranges, mag coverage.
     ``mag_start``: "file" (started from a calibration file), "batch" (from the batch of these logs), None;
-    ``start``: that calibration, for the cross-check (onlinecal.health.start_checks)."""
+    ``start``: that calibration, for the cross-check (onlinecal.health.start_checks); ``digest``: the raw
+    samples' :class:`onlinecal.health.RawDigest` where they were streamed (gravity at rest and the rail read
+    from it instead of ``logs``)."""
     from .health import assess
 
     return assess(res.calibration, events=getattr(res, "events", None), nis=getattr(res, "nis", None),
                   observability=getattr(res, "observability", None),
-                  mag_raw=_mag_raw(logs) if logs else None, raw=_raw(logs), mag_start=mag_start, start=start)
+                  mag_raw=_mag_raw(logs) if logs else None, raw=digest if digest is not None else _raw(logs),
+                  mag_start=mag_start, start=start)
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
@@ -393,6 +396,7 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
     (onlinecal.ukf.replay.replay_stream), so memory does not grow with the logs' length. None when the start
     calibration carries extensions that need whole logs (the caller then reads them whole)."""
     from .batch.clock import ReclockedReader
+    from .health import RawDigest
     from .io import open_log
     from .progress import bar
     from .ukf.replay import replay_stream
@@ -426,23 +430,33 @@ def _replay_streamed(a: argparse.Namespace) -> int | None:
         def show(i: int, n: int) -> None:
             pb.set(i)
 
-        res = replay_stream((r.blocks(REPLAY_CHUNK) for r in readers), init, chunk=REPLAY_CHUNK,
+        digest = RawDigest()  # what the health verdict reads of the samples (gravity at rest, the rail)
+
+        def tapped(blocks: Iterable[Any]) -> Iterator[Any]:
+            digest.new_log()
+            for blk in blocks:
+                digest.add(blk.gyro, blk.acc)
+                yield blk
+
+        res = replay_stream((tapped(r.blocks(REPLAY_CHUNK)) for r in readers), init, chunk=REPLAY_CHUNK,
                             trace_path=a.trace, on_progress=show, config=_ukf_config(a))
     said = set(bres_warnings)
     for r in readers:
         # the clock's sentences name the file already (the batch start said them too: not twice)
         _warn([f"{r.path}: {w}" for w in r.warnings if w not in r.notes] + [w for w in r.notes if w not in said])
     _warn(res.warnings)
-    return _replay_result(a, res, init, label, logs, None, [])
+    return _replay_result(a, res, init, label, logs, None, [], digest)
 
 
 def _replay_result(a: argparse.Namespace, res: Any, start: Any, label: str, logs: Sequence[Any] | None,
-                   report: Any, written: list[str]) -> int:
+                   report: Any, written: list[str], digest: Any = None) -> int:
     """The end of every ``replay`` (whole logs or streamed): health verdict, start · online table, what the
-    data did not determine, the files written; the exit status by the verdict."""
+    data did not determine, the files written; the exit status by the verdict. ``digest``: the streamed logs'
+    :class:`onlinecal.health.RawDigest` (every sample, where ``logs`` are the batch's kept stretches or none)."""
     from .report import truth_table
 
-    health = online_health(res, logs, None if start is None else ("batch" if label == "batch" else "file"), start)
+    health = online_health(res, logs, None if start is None else ("batch" if label == "batch" else "file"), start,
+                           digest)
     print(truth_table(None, start, res.calibration, labels=(label, "online")), file=_human(a.json))
     _print_observability(res.calibration, _human(a.json))
     _wrote(res.calibration, health, a.json, report, written)
@@ -595,7 +609,7 @@ def cmd_run(a: argparse.Namespace) -> int:
         raise UsageError(f"{e.filename or '?'}: cannot write ({e.strerror or e})") from e
     if init is not None and init.extensions and not res.calibration.extensions:
         res.calibration = res.calibration.replace(extensions=init.extensions)
-    health = online_health(res)
+    health = online_health(res, digest=getattr(res, "raw_digest", None))
     if a.json:
         _save_result(res.calibration, health, a.json)
     from .report import truth_table

@@ -67,7 +67,8 @@ def run_demo(out: Path, seed: int = 0) -> int:
         res = run_batch([data])
         t_batch = time.perf_counter() - t0
         batch = res.calibration
-        h_batch = assess(batch, mag_raw=data.mag if data.n_mag else None)
+        raw = {"gyro": data.gyro, "accel": data.acc}  # gravity at rest and the rail, as every command judges them
+        h_batch = assess(batch, mag_raw=data.mag if data.n_mag else None, raw=raw)
         _save(batch, h_batch, out / "batch.json")
         st.next("online filter")
         t0 = time.perf_counter()
@@ -78,7 +79,7 @@ def run_demo(out: Path, seed: int = 0) -> int:
         h_online = None
         if ores is not None and online is not None:
             h_online = assess(online, nis=ores.nis, events=ores.events, observability=ores.observability,
-                              mag_raw=data.mag if data.n_mag else None)
+                              mag_raw=data.mag if data.n_mag else None, raw=raw)
             _save(online, h_online, out / "online.json")
         st.next("report")
     truth = sim.truth.calibration

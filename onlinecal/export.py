@@ -662,12 +662,14 @@ def compose_onboard(cal: Calibration, onboard: dict[str, float], fmt: str,
     return cal.replace(**kw), warnings
 
 
-def vehicle_params(cal: Calibration, fmt: str, mag_unit: str = "gauss") -> dict[str, float]:
-    """The firmware parameters for ``cal`` in ``fmt`` (``ardupilot`` | ``px4``), in the firmware's order.
+def vehicle_params(cal: Calibration, fmt: str, mag_unit: str = "gauss",
+                   health: dict[str, Any] | None = None) -> dict[str, float]:
+    """The firmware parameters for ``cal`` in ``fmt`` (``ardupilot`` | ``px4``), in the firmware's order;
+    ``health``: the result's verdict (its named sensors' parameters withheld, :func:`guard`).
 
     See :func:`export_calibration` (and the module docstring) for the conventions and what is dropped.
     """
-    return export_calibration(cal, fmt, mag_unit).params
+    return export_calibration(cal, fmt, mag_unit, health=health).params
 
 
 def format_value(x: float) -> str:

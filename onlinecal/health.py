@@ -17,7 +17,8 @@ A result is judged on what can be checked without the truth:
   :mod:`onlinecal.ukf.health`): their NIS is below d by design whenever the vehicle accelerates less than
   the bound, so only a mean *above* 2 d (the bound did not cover the flight) → **degraded**, above 10 d →
   **failed**; the two-sided band judges the updates whose R is the sensor's noise (rests, the ground).
-* **gravity at rest** (:func:`gravity_checks`), when the raw samples are given: where the calibrated
+* **gravity at rest** (:func:`gravity_checks`), when the raw samples are given (whole, or as the
+  :class:`RawDigest` a streamed replay or a live run gathers from every sample it fed): where the calibrated
   gyro and accelerometer are still (blocks of :data:`REST_BLOCK` samples), the calibrated specific force is
   gravity, so its norm must be g within what the accelerometer's σ along it allow (5σ) plus the spread of
   local gravity on Earth (:data:`G_LOCAL_TOL`). Beyond → **degraded**. The filter cannot always show this
@@ -50,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from .model import PARAMS, SENSORS, Calibration
-from .specs import rail_samples
+from .specs import RAIL_SAMPLES, RAIL_TOL
 
 HEALTH_SCHEMA = "onlinecal.health/1"
 VERDICTS = ("ok", "degraded", "failed")
@@ -203,22 +204,128 @@ def _gate_check(sensor: str, st: dict[str, Any]) -> tuple[str, str] | None:
     return None
 
 
-def rail_checks(raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, int]]:
-    """Saturation seen in the raw samples (``raw``: sensor → (N, 3)): an axis whose largest magnitude,
-    above :data:`RAIL_MIN`, recurs in at least :data:`onlinecal.specs.RAIL_SAMPLES` samples is at its rail
-    (a true peak is reached once; :func:`onlinecal.specs.rail_samples`)
+class RawDigest:
+    """What the health verdict reads of the raw gyro and accelerometer samples, gathered block by block, so that
+    a replay that streams its logs (``onlinecal replay`` holds no log whole) is judged as one that held them:
+    per :data:`REST_BLOCK` consecutive IMU samples of one log, each sensor's raw mean (3,) and covariance (3, 3)
+    (:func:`gravity_checks`: a calibration is linear, so the calibrated block's mean and per-axis σ follow
+    exactly), and per sensor and axis the largest magnitude with the samples near it (:func:`rail_checks`,
+    :func:`onlinecal.specs.rail_samples`'s rule). Memory: 24 numbers per 50 samples, and the samples within
+    :data:`onlinecal.specs.RAIL_TOL` of an axis' top above :data:`RAIL_MIN`.
+
+    ``add(gyro, accel)``: raw samples (N, 3) of the two sensors on one time base, in order; ``new_log()``
+    between logs (a block never spans two)."""
+
+    SENSORS = ("gyro", "accel")
+
+    def __init__(self) -> None:
+        self._carry: list[np.ndarray] | None = None
+        self._mean: dict[str, list[np.ndarray]] = {s: [] for s in self.SENSORS}
+        self._cov: dict[str, list[np.ndarray]] = {s: [] for s in self.SENSORS}
+        self._top = {s: np.zeros(3) for s in self.SENSORS}
+        self._near: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [(np.zeros(0, np.int64), np.zeros(0))] * 3
+                                                                      for s in self.SENSORS}
+        self._seen = {s: 0 for s in self.SENSORS}  # samples, the rail candidates' index
+        self.blocks = 0
+
+    @classmethod
+    def of(cls, raw: dict[str, Any] | None) -> RawDigest:
+        """The digest of whole arrays (sensor → (N, 3)), as :func:`assess`'s ``raw`` gives them."""
+        d = cls()
+        w, a = (None if not raw else raw.get(s) for s in cls.SENSORS)
+        w = None if w is None else np.asarray(w, float).reshape(-1, 3)
+        a = None if a is None else np.asarray(a, float).reshape(-1, 3)
+        for s, x in (("gyro", w), ("accel", a)):
+            if x is not None:
+                d._rails(s, x)
+        if w is not None and a is not None:
+            n = min(w.shape[0], a.shape[0])
+            d._blocks(w[:n], a[:n])
+        return d
+
+    def new_log(self) -> None:
+        self._carry = None
+
+    def add(self, gyro: Any, accel: Any) -> None:
+        w, a = np.asarray(gyro, float).reshape(-1, 3), np.asarray(accel, float).reshape(-1, 3)
+        if w.shape != a.shape:
+            raise ValueError(f"gyro {w.shape} and accel {a.shape} samples are not on one time base")
+        self._rails("gyro", w)
+        self._rails("accel", a)
+        if self._carry is not None:
+            w, a = np.concatenate([self._carry[0], w]), np.concatenate([self._carry[1], a])
+        n = w.shape[0] // REST_BLOCK * REST_BLOCK
+        self._blocks(w[:n], a[:n])
+        self._carry = [w[n:].copy(), a[n:].copy()]
+
+    def _blocks(self, w: np.ndarray, a: np.ndarray) -> None:
+        n = w.shape[0] // REST_BLOCK * REST_BLOCK
+        if n == 0:
+            return
+        for s, x in (("gyro", w[:n]), ("accel", a[:n])):
+            X = x.reshape(-1, REST_BLOCK, 3)
+            with np.errstate(all="ignore"):
+                m = X.mean(1)
+                D = X - m[:, None, :]
+                self._mean[s].append(m)
+                self._cov[s].append(np.einsum("bki,bkj->bij", D, D) / REST_BLOCK)
+        self.blocks += n // REST_BLOCK
+
+    def _rails(self, s: str, x: np.ndarray) -> None:
+        ax = np.abs(x)
+        ax = np.where(np.isfinite(ax), ax, 0.0)
+        i0 = self._seen[s]
+        self._seen[s] += ax.shape[0]
+        if ax.shape[0] == 0:
+            return
+        top = np.maximum(self._top[s], ax.max(axis=0))
+        self._top[s] = top
+        floor = RAIL_MIN[s] * (1 - RAIL_TOL)  # no rail below RAIL_MIN: nothing under it is ever counted
+        for k in range(3):
+            lo = max(top[k] * (1 - RAIL_TOL), floor)
+            idx, val = self._near[s][k]
+            keep = val >= lo
+            new = np.flatnonzero(ax[:, k] >= lo)
+            self._near[s][k] = (np.concatenate([idx[keep], i0 + new]), np.concatenate([val[keep], ax[new, k]]))
+
+    def block_stats(self, sensor: str) -> tuple[np.ndarray, np.ndarray]:
+        """(means (B, 3), covariances (B, 3, 3)) of ``sensor``'s raw blocks."""
+        m, c = self._mean[sensor], self._cov[sensor]
+        return (np.concatenate(m) if m else np.zeros((0, 3)), np.concatenate(c) if c else np.zeros((0, 3, 3)))
+
+    def rails(self, sensor: str) -> tuple[np.ndarray, np.ndarray, int]:
+        """(top (3,), axes with a rail (3,), samples at any rail axis' top): :func:`onlinecal.specs.rail_samples`."""
+        top = self._top[sensor]
+        counts = np.array([self._near[sensor][k][0].size for k in range(3)])
+        rail = (counts >= RAIL_SAMPLES) & (top > RAIL_MIN[sensor])
+        at = [self._near[sensor][k][0] for k in range(3) if rail[k]]
+        n = int(np.unique(np.concatenate(at)).size) if at else 0
+        return top, rail, n
+
+    def has(self, sensor: str) -> bool:
+        return self._seen[sensor] > 0
+
+
+def _digest(raw: dict[str, Any] | RawDigest | None) -> RawDigest | None:
+    if raw is None or isinstance(raw, RawDigest):
+        return raw
+    return RawDigest.of(raw) if raw else None
+
+
+def rail_checks(raw: dict[str, Any] | RawDigest | None) -> tuple[list[tuple[str, str]], dict[str, int]]:
+    """Saturation seen in the raw samples (``raw``: sensor → (N, 3), or their :class:`RawDigest`): an axis
+    whose largest magnitude, above :data:`RAIL_MIN`, recurs in at least :data:`onlinecal.specs.RAIL_SAMPLES`
+    samples is at its rail (a true peak is reached once; :func:`onlinecal.specs.rail_samples`)
     → degraded, whether or not the filter raised an event."""
     out: list[tuple[str, str]] = []
     counts: dict[str, int] = {}
-    for s, x in (raw or {}).items():
-        if x is None or s not in RAIL_MIN:
+    d = _digest(raw)
+    if d is None:
+        return out, counts
+    for s in RawDigest.SENSORS:
+        if not d.has(s):
             continue
-        a = np.abs(np.asarray(x, float).reshape(-1, 3))
-        a = np.where(np.isfinite(a), a, 0.0)
-        if a.shape[0] == 0:
-            continue
-        top, at, rail = rail_samples(a, RAIL_MIN[s])
-        n = int(at[:, rail].any(axis=1).sum()) if rail.any() else 0
+        top, rail, n = d.rails(s)
         if n:
             counts[s] = n
             axes = ", ".join(f"{'xyz'[k]} ±{top[k]:.4g}" for k in range(3) if rail[k])
@@ -263,34 +370,34 @@ def mag_coverage(mag_cal: Any, cells: int = COVERAGE_CELLS) -> float:
     return float(np.mean(counts >= COVERAGE_MIN_SAMPLES))
 
 
-def gravity_checks(cal: Calibration, raw: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, Any]]:
+def gravity_checks(cal: Calibration, raw: dict[str, Any] | RawDigest | None
+                   ) -> tuple[list[tuple[str, str]], dict[str, Any]]:
     """At rest the calibrated specific force is gravity: (verdict, reason) when the median of |f| − g over
-    the still blocks of ``raw`` (sensor → raw samples (N, 3), gyro and accel on one time base) is beyond
-    5σ of what the accelerometer's σ allow along f, plus :data:`G_LOCAL_TOL`; and the figures. Nothing is
-    judged without both sensors' calibration or with fewer than :data:`REST_MIN_BLOCKS` still blocks."""
+    the still blocks of ``raw`` (sensor → raw samples (N, 3), gyro and accel on one time base, or their
+    :class:`RawDigest`) is beyond 5σ of what the accelerometer's σ allow along f, plus :data:`G_LOCAL_TOL`; and
+    the figures. Nothing is judged without both sensors' calibration or with fewer than
+    :data:`REST_MIN_BLOCKS` still blocks."""
     from .specs import G0
 
     fig: dict[str, Any] = {"rest_blocks": 0}
-    if not raw or cal.accel is None or cal.gyro is None:
+    d = _digest(raw)
+    if d is None or cal.accel is None or cal.gyro is None or d.blocks < REST_MIN_BLOCKS:
         return [], fig
-    w, a = raw.get("gyro"), raw.get("accel")
-    if w is None or a is None:
-        return [], fig
-    w, a = np.asarray(w, float).reshape(-1, 3), np.asarray(a, float).reshape(-1, 3)
-    n = min(w.shape[0], a.shape[0]) // REST_BLOCK * REST_BLOCK
-    if n < REST_BLOCK * REST_MIN_BLOCKS:
-        return [], fig
+    (mw, cw), (ma, ca) = d.block_stats("gyro"), d.block_stats("accel")
+    Mg, Ma = np.asarray(cal.gyro.matrix, float), np.asarray(cal.accel.matrix, float)
     with np.errstate(all="ignore"):
-        wc = cal.gyro.apply(w[:n]).reshape(-1, REST_BLOCK, 3)
-        fc = cal.accel.apply(a[:n]).reshape(-1, REST_BLOCK, 3)
-        still = ((np.abs(wc.mean(1)) < REST_RATE).all(1) & (wc.std(1) < REST_RATE).all(1)
-                 & (fc.std(1) < REST_ACC).all(1))
-    still &= np.isfinite(fc).all((1, 2)) & np.isfinite(wc).all((1, 2))
+        # calibrated = M (raw − o) (eq. 1): block means map through it, per-axis variances are diag(M C Mᵀ)
+        wm = (mw - np.asarray(cal.gyro.bias, float)) @ Mg.T
+        fm = (ma - np.asarray(cal.accel.bias, float)) @ Ma.T
+        ws = np.sqrt(np.maximum(np.einsum("ij,bjk,ik->bi", Mg, cw, Mg), 0.0))
+        fs = np.sqrt(np.maximum(np.einsum("ij,bjk,ik->bi", Ma, ca, Ma), 0.0))
+        still = (np.abs(wm) < REST_RATE).all(1) & (ws < REST_RATE).all(1) & (fs < REST_ACC).all(1)
+    still &= np.isfinite(fm).all(1) & np.isfinite(wm).all(1) & np.isfinite(fs).all(1) & np.isfinite(ws).all(1)
     k = int(still.sum())
     fig["rest_blocks"] = k
     if k < REST_MIN_BLOCKS:
         return [], fig
-    f = fc[still].mean(1)  # (k, 3) m/s²
+    f = fm[still]  # (k, 3) m/s²
     dev = float(np.median(np.linalg.norm(f, axis=1) - G0))
     u = np.median(f / np.linalg.norm(f, axis=1, keepdims=True), axis=0)
     sig = cal.accel.sigma or {}
@@ -471,17 +578,17 @@ def start_checks(cal: Calibration, start: Calibration | None, observability: dic
 
 def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Sequence[dict[str, Any]] | None = None,
            observability: dict[str, Any] | None = None, mag_raw: Any = None,
-           raw: dict[str, Any] | None = None, warnings: Sequence[str] = (),
+           raw: dict[str, Any] | RawDigest | None = None, warnings: Sequence[str] = (),
            mag_start: str | None = None, start: Calibration | None = None) -> dict[str, Any]:
     """The health verdict of ``cal`` (see the module doc).
 
-    ``nis`` and ``events`` default to ``cal.meta["online"]`` (an online result); ``observability``: the
-    filter's per-term posterior/prior σ ratio; ``mag_raw`` (M, 3): the raw magnetometer samples the result
-    was fitted on, for the coverage check; ``raw``: sensor → raw samples (N, 3) for the rail check
-    (:func:`rail_checks`); ``warnings``: the fit's own warnings (kept as notes); ``mag_start``: where an
-    online result's magnetometer started, ``"file"`` (a calibration fitted on other data: the coverage of
-    these samples does not judge it unless the filter re-fitted it cold), ``"batch"`` (fitted on these
-    samples) or None (unknown: judged as fitted here); ``start``: the calibration an online result started
+    ``nis`` and ``events`` default to ``cal.meta["online"]`` (an online result); ``observability``: the filter's
+    per-term posterior/prior σ ratio; ``mag_raw`` (M, 3): the raw magnetometer samples the result was fitted on, for
+    the coverage check; ``raw``: sensor → raw samples (N, 3), or their :class:`RawDigest`, for the rail and gravity
+    checks (:func:`rail_checks`, :func:`gravity_checks`); ``warnings``: the fit's own warnings (kept as notes);
+    ``mag_start``: where an online result's magnetometer started, ``"file"`` (a calibration fitted on other data:
+    the coverage of these samples does not judge it unless the filter re-fitted it cold), ``"batch"`` (fitted on
+    these samples) or None (unknown: judged as fitted here); ``start``: the calibration an online result started
     from, for the cross-check (:func:`start_checks`; its data the same logs where ``mag_start`` is "batch").
     Returns ``{"schema", "verdict", "reasons", "notes", "checks"}``.
     """
@@ -501,6 +608,7 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
     ef, ev = event_checks(events)
     found += ef
     checks.update(ev)
+    raw = _digest(raw)  # once, for both checks
     gf, checks["gravity_at_rest"] = gravity_checks(cal, raw)
     found += gf
     rf, rails = rail_checks(raw)

@@ -166,6 +166,8 @@ def test_lossy_udp_live_run_matches_replay_of_the_same_log(paper, uninterrupted)
     d = json.loads((paper.dir / "live.json").read_text())
     for s in SENSORS:
         assert set(d[s]["sigma"]) == set(PARAMS)
+    # the health verdict read the samples fed: the session's rests (a live run held none for it before session 18)
+    assert d["health"]["checks"]["gravity_at_rest"]["rest_blocks"] >= 10
 
 
 @pytest.mark.slow

@@ -28,6 +28,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from ..health import RawDigest
 from ..io.base import ImuData, LogError, split_boundaries
 from ..io.mavlink import MAV_PARAM_TYPE_INT32
 from ..model import Calibration
@@ -56,6 +57,7 @@ class LiveResult(OnlineResult):
     apply_format: str | None = None
     warnings: list[str] = field(default_factory=list)
     apply_error: str | None = None
+    raw_digest: RawDigest | None = None  # the samples fed, for the health verdict (onlinecal.cli.online_health)
 
     @property
     def apply_failed(self) -> list[str]:
@@ -63,7 +65,7 @@ class LiveResult(OnlineResult):
         return [n for n, r in (self.applied or {}).items() if not r["ok"]]
 
 
-def _vehicle_params() -> tuple[Callable[[Calibration, str], dict[str, float]], frozenset[str]]:
+def _vehicle_params() -> tuple[Callable[..., dict[str, float]], frozenset[str]]:
     """``onlinecal.export.vehicle_params`` and the names of its integer parameters, imported when asked
     for (ImportError names what is missing)."""
     try:
@@ -197,6 +199,9 @@ class _LiveRun:
         self.make_cal: Callable[[UKFConfig], OnlineCalibrator] | None = None
         self.gps_declination: float | None = None
         self.held: list[tuple[ImuData, dict[str, Any]]] = []  # blocks held back while waiting for a GPS fix
+        # what the health verdict reads of the samples fed (gravity at rest, the rail): this process's only, not
+        # in the checkpoint (a resumed run's verdict judges the samples since the resume)
+        self.digest = RawDigest()
 
     def wait_for_gps(self, wait_s: float, make_cal: Callable[[UKFConfig], OnlineCalibrator],
                      declination: float | None = None) -> None:
@@ -284,7 +289,11 @@ class _LiveRun:
         for new_segment, piece in split_boundaries(block):
             if new_segment:
                 self.cal.new_log()  # a vehicle reboot: the attitude restarts, the calibration stays
-            self.cal.feed(self.transform(piece) if self.transform is not None else piece)
+                self.digest.new_log()
+            fed = self.transform(piece) if self.transform is not None else piece
+            self.cal.feed(fed)
+            if fed.n_imu:
+                self.digest.add(fed.gyro, fed.acc)
         self.pos_fed = pos
         if block.n_imu:
             self.fed["imu"] += block.n_imu
@@ -365,17 +374,25 @@ class _LiveRun:
                             stop_reason=stats["stop_reason"], checkpoints=self.n_ckpt, resumes=self.resumes,
                             warnings=list(self.src.warnings))
         result.boundaries = [dict(b) for b in self.segments]
+        result.raw_digest = self.digest
         return result
 
 
-def _apply(result: LiveResult, apply: str, exporter: tuple[Callable[[Calibration, str], dict[str, float]],
-           frozenset[str]], src: LiveSource, out: TextIO) -> None:
+def _apply(result: LiveResult, apply: str, exporter: tuple[Callable[..., dict[str, float]], frozenset[str]],
+           src: LiveSource, out: TextIO) -> None:
     """Set the result's calibration as ``apply`` ('ardupilot' | 'px4') parameters on the vehicle and record
-    each parameter's confirmation (or why the calibration cannot be expressed) in ``result``."""
+    each parameter's confirmation (or why the calibration cannot be expressed) in ``result``. The parameters
+    of a sensor the health verdict names are not set (:func:`onlinecal.export.guard`: the verdict of the
+    result's calibration, its NIS and events, and here also gravity at rest and the rail read from the samples
+    fed): the vehicle keeps its own."""
+    from ..health import gravity_checks, rail_checks
+
     vehicle_params, int_names = exporter
     result.apply_format = apply
+    found = gravity_checks(result.calibration, result.raw_digest)[0] + rail_checks(result.raw_digest)[0]
+    health = {"verdict": "degraded", "reasons": [r for _, r in found]} if found else None
     try:
-        params = vehicle_params(result.calibration, apply)
+        params = vehicle_params(result.calibration, apply, health=health)
     except ValueError as e:  # export.ExportError: not expressible in the firmware's parameters
         result.apply_error = f"the calibration cannot be set as {apply} parameters: {e}"
         result.applied = {}

@@ -217,8 +217,11 @@ class RawDigest:
     between logs (a block never spans two)."""
 
     SENSORS = ("gyro", "accel")
+    PENDING = 2048  # samples held before they are digested
 
     def __init__(self) -> None:
+        self._pending: list[tuple[np.ndarray, np.ndarray]] = []
+        self._n_pending = 0
         self._carry: list[np.ndarray] | None = None
         self._mean: dict[str, list[np.ndarray]] = {s: [] for s in self.SENSORS}
         self._cov: dict[str, list[np.ndarray]] = {s: [] for s in self.SENSORS}
@@ -226,7 +229,7 @@ class RawDigest:
         self._near: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [(np.zeros(0, np.int64), np.zeros(0))] * 3
                                                                       for s in self.SENSORS}
         self._seen = {s: 0 for s in self.SENSORS}  # samples, the rail candidates' index
-        self.blocks = 0
+        self._blocks_done = 0
 
     @classmethod
     def of(cls, raw: dict[str, Any] | None) -> RawDigest:
@@ -244,12 +247,25 @@ class RawDigest:
         return d
 
     def new_log(self) -> None:
+        self._flush()
         self._carry = None
 
     def add(self, gyro: Any, accel: Any) -> None:
         w, a = np.asarray(gyro, float).reshape(-1, 3), np.asarray(accel, float).reshape(-1, 3)
         if w.shape != a.shape:
             raise ValueError(f"gyro {w.shape} and accel {a.shape} samples are not on one time base")
+        # a live link's blocks are a few samples each: they wait here and are digested in thousands
+        self._pending.append((w.copy(), a.copy()))
+        self._n_pending += w.shape[0]
+        if self._n_pending >= self.PENDING:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        w = np.concatenate([p[0] for p in self._pending])
+        a = np.concatenate([p[1] for p in self._pending])
+        self._pending, self._n_pending = [], 0
         self._rails("gyro", w)
         self._rails("accel", a)
         if self._carry is not None:
@@ -268,8 +284,8 @@ class RawDigest:
                 m = X.mean(1)
                 D = X - m[:, None, :]
                 self._mean[s].append(m)
-                self._cov[s].append(np.einsum("bki,bkj->bij", D, D) / REST_BLOCK)
-        self.blocks += n // REST_BLOCK
+                self._cov[s].append(np.matmul(D.transpose(0, 2, 1), D) / REST_BLOCK)
+        self._blocks_done += n // REST_BLOCK
 
     def _rails(self, s: str, x: np.ndarray) -> None:
         ax = np.abs(x)
@@ -288,13 +304,21 @@ class RawDigest:
             new = np.flatnonzero(ax[:, k] >= lo)
             self._near[s][k] = (np.concatenate([idx[keep], i0 + new]), np.concatenate([val[keep], ax[new, k]]))
 
+    @property
+    def blocks(self) -> int:
+        """Blocks of :data:`REST_BLOCK` samples digested."""
+        self._flush()
+        return self._blocks_done
+
     def block_stats(self, sensor: str) -> tuple[np.ndarray, np.ndarray]:
         """(means (B, 3), covariances (B, 3, 3)) of ``sensor``'s raw blocks."""
+        self._flush()
         m, c = self._mean[sensor], self._cov[sensor]
         return (np.concatenate(m) if m else np.zeros((0, 3)), np.concatenate(c) if c else np.zeros((0, 3, 3)))
 
     def rails(self, sensor: str) -> tuple[np.ndarray, np.ndarray, int]:
         """(top (3,), axes with a rail (3,), samples at any rail axis' top): :func:`onlinecal.specs.rail_samples`."""
+        self._flush()
         top = self._top[sensor]
         counts = np.array([self._near[sensor][k][0].size for k in range(3)])
         rail = (counts >= RAIL_SAMPLES) & (top > RAIL_MIN[sensor])
@@ -303,6 +327,7 @@ class RawDigest:
         return top, rail, n
 
     def has(self, sensor: str) -> bool:
+        self._flush()
         return self._seen[sensor] > 0
 
 

@@ -223,7 +223,7 @@ def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10
     h = assess(cal, nis=res.nis, events=res.events, observability=res.observability,
                raw={"gyro": sim.data.gyro, "accel": sim.data.acc},  # as the command line (cli.online_health)
                mag_raw=sim.data.mag if sim.data.n_mag else None,
-               mag_start=None if init is None else "file")  # as `replay --init CAL.json`
+               mag_start=None if init is None else "file", start=init)  # as `replay --init CAL.json`
     figs = h["checks"].get("nis", {})
     nis_out = any(v.get("mean") is not None and "band" in v and not v["band"][0] <= v["mean"] <= v["band"][1]
                   for v in figs.values())

@@ -8,10 +8,10 @@ samples arrive. This script measures, side by side:
    :func:`onlinecal.ukf.unscented.sigma_points`) on a 5-term model — heading ψ, dip δ, bias b (3) —
    h = Rz(ψ)ᵀ (0, F cos δ, −F sin δ) + b, padded to the filter's 40 states with unrelated terms, the truth at the
    prior's mean: N sequential updates, and the same N samples as one update of their mean (what a rest does);
-2. the filter itself (:class:`onlinecal.ukf.OnlineCalibrator`) on the first 34 s of a simulated fixed-wing flight,
-   on the ground and still, started from the truth (σ of ``flight_stats.truth_start``): with its rest update (one
-   measurement per rest) and with rests turned off (``rest_blocks`` = 10⁹: every block a motion update, as an armed
-   vehicle on the ground or a straight and level leg gets).
+2. the filter itself (:class:`onlinecal.ukf.OnlineCalibrator`) on the first 34 s of a simulated 180-s fixed-wing
+   flight, its disarmed ground rest (still), started from the truth (σ of ``flight_stats.truth_start``): with its
+   rest update (one measurement per rest) and with rests turned off (``rest_blocks`` = 10⁹: every block a motion
+   update, as an armed vehicle on the ground or a straight and level leg gets).
 
     PYTHONPATH=. python benchmarks/nullspace_leak.py
 """
@@ -70,7 +70,7 @@ def toy(alpha: float, sigma_r: float, n_updates: int, pad: int = 35, seed: int =
 
 def still_flight(rest: bool, seconds: int = 34) -> list[tuple[float, float, float, float]]:
     """(t, σ heading °, σ mag.bias.y, its error in σ) of the filter on the fixed-wing's ground rest."""
-    sim = simulate("fixedwing", 3, duration=60.0, imu_rate=200.0, mag_rate=50.0, earth_rate=False)
+    sim = simulate("fixedwing", 3, duration=180.0, imu_rate=200.0, mag_rate=50.0, earth_rate=False)
     T = sim.truth.calibration
     assert T.mag is not None
     cal = OnlineCalibrator(truth_start(T), UKFConfig() if rest else UKFConfig(rest_blocks=10**9))

@@ -225,20 +225,16 @@ def test_vehicle_gyro_samples_not_ahead_of_the_attitude() -> None:
     assert e_now < 0.9 * e_held, (e_now, e_held)
 
 
-def test_a_fixed_wing_too_short_for_its_schedule_is_refused_and_no_disarmed_vehicle_accelerates(tmp_path) -> None:
+def test_no_disarmed_fixed_wing_accelerates_whatever_the_sessions_length() -> None:
     """Session 18: a 60-s fixed-wing was simulated with its approach (15 m/s) commanded from t = 15 s, while it
     still stood disarmed on the runway (take-off at 38 s): up to 3 m/s² of specific force along x with no
-    thrust. Shorter than its schedule (ground rest + 68 s) the profile is now refused; at the shortest and the
-    default length a disarmed vehicle on the ground measures gravity alone (Newton: no thrust, no acceleration)."""
-    r = subprocess.run([sys.executable, "-m", "onlinecal", "simulate", "--out", str(tmp_path / "fw.csv"), "--profile",
-                        "fixedwing", "--duration", "60"], capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "at least 103 s" in r.stderr, r.stderr
-    assert not (tmp_path / "fw.csv").exists()
-    for duration in (103.0, 600.0):
+    thrust. Now a session shorter than the schedule stops where it is. Physics: a disarmed vehicle on the
+    ground measures gravity alone; the 600-s flight (whose schedule fits) is the same as before."""
+    for duration in (40.0, 60.0, 103.0, 600.0):
         sim = simulate("fixedwing", 3, duration=duration, imu_rate=100.0)
         tr = sim.trajectory
         t = np.arange(0.0, duration, 0.5)
         disarmed = ~tr.at("armed", t).astype(bool)
         f = tr.evaluate(t).f
-        assert disarmed.sum() > 40
+        assert disarmed.sum() >= 70
         assert np.abs(f[disarmed, :2]).max() < 1e-6 and np.allclose(f[disarmed, 2], 9.80665, atol=1e-6)

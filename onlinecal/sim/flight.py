@@ -373,8 +373,11 @@ def fixedwing_trajectory(rng: np.random.Generator, duration: float = 600.0, rest
     psi0 = float(rng.uniform(-np.pi, np.pi))
     t_arm, t_roll = rest_s, rest_s + 3.0
     t_air = t_roll + 8.0
-    t_app = duration - 45.0
-    t_td = duration - 20.0
+    # approach and landing in the last 45 s — never before the climb-out ends: a session shorter than its
+    # schedule stops where it is (before session 18 a 60-s one commanded the approach on the runway before
+    # take-off, the disarmed vehicle accelerating at 3 m/s²)
+    t_app = max(duration - 45.0, t_air + 12.0)
+    t_td = t_app + 25.0
     cmd[:, 4] = (t >= t_arm) & (t < t_td + 8.0)
     cmd[:, 5] = (t < t_air) | (t >= t_td)
     segs: list[dict[str, Any]] = [
@@ -402,9 +405,10 @@ def fixedwing_trajectory(rng: np.random.Generator, duration: float = 600.0, rest
                      "bank_deg": float(np.degrees(bank))})
     m = (t >= t_app) & (t < t_td)
     cmd[m, 0], cmd[m, 2] = 15.0, -1.5
-    segs.append({"kind": "flight", "t0": t_app, "t1": t_td, "label": "approach"})
-    segs.append({"kind": "flight", "t0": t_td, "t1": t_td + 10.0, "label": "landing roll"})
-    segs.append({"kind": "hold", "t0": t_td + 10.0, "t1": duration, "label": "ground rest"})
+    for kind, a, b, label in (("flight", t_app, t_td, "approach"), ("flight", t_td, t_td + 10.0, "landing roll"),
+                              ("hold", t_td + 10.0, duration, "ground rest")):
+        if a < duration:
+            segs.append({"kind": kind, "t0": a, "t1": b, "label": label})
     R, W, F, A, V, T = _integrate(1, cmd, _rz(psi0), G0, dt, 5.0, 0.05, np.radians([90.0, 60.0, 60.0]),
                                   np.array([0.5, 0.5, 0.8]), np.array([3.0, 2.5]), 0.0, np.radians(3.0))
     _ground_fix(R, W, F, A, (cmd[:, 5] > 0.5) & (np.linalg.norm(V, axis=1) == 0.0), G0)

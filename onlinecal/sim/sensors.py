@@ -24,7 +24,6 @@ from ..model import Calibration, SensorCalibration
 from ..specs import ACCEL_SPEC, FIELD_DIP_DEG, FIELD_GAUSS, GYRO_SPEC, MAG_SPEC, SensorSpec  # noqa: F401 (re-export)
 from .effects import order_effects, vehicle_series
 from .flight import (
-    REST_S,
     VIBE_HEALTHY,
     VehicleTrajectory,
     fixedwing_trajectory,
@@ -301,15 +300,6 @@ def make_trajectory(profile: str, rng: np.random.Generator, duration: float | No
     if profile == "multirotor":
         return multirotor_trajectory(rng, duration or 600.0, **({"rest_s": rest_s} if rest_s else {}))
     if profile == "fixedwing":
-        # its schedule: the ground rest, 3 s run-up, 8 s take-off roll, 12 s climb-out, …, 45 s approach and
-        # landing roll before the end; shorter, the approach is commanded on the runway before take-off (a
-        # vehicle accelerating on the ground, disarmed: no flight at all)
-        rest = rest_s or REST_S
-        shortest = rest + 3.0 + 8.0 + 12.0 + 45.0
-        if duration is not None and duration < shortest:
-            raise ProfileError(f"profile 'fixedwing' needs a duration of at least {shortest:g} s (its {rest:g}-s "
-                               f"ground rest, run-up, take-off roll, climb-out, then 45 s of approach and landing), "
-                               f"not {duration:g} s")
         return fixedwing_trajectory(rng, duration or 600.0, **({"rest_s": rest_s} if rest_s else {}))
     raise ProfileError(f"unknown profile {profile!r} ({', '.join(PROFILES)})")
 

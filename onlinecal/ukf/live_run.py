@@ -385,12 +385,13 @@ def _apply(result: LiveResult, apply: str, exporter: tuple[Callable[..., dict[st
     of a sensor the health verdict names are not set (:func:`onlinecal.export.guard`: the verdict of the
     result's calibration, its NIS and events, and here also gravity at rest and the rail read from the samples
     fed): the vehicle keeps its own."""
-    from ..health import gravity_checks, rail_checks
+    from ..health import VERDICTS, gravity_checks, rail_checks
 
     vehicle_params, int_names = exporter
     result.apply_format = apply
     found = gravity_checks(result.calibration, result.raw_digest)[0] + rail_checks(result.raw_digest)[0]
-    health = {"verdict": "degraded", "reasons": [r for _, r in found]} if found else None
+    health = ({"verdict": max((v for v, _ in found), key=VERDICTS.index), "reasons": [r for _, r in found]}
+              if found else None)
     try:
         params = vehicle_params(result.calibration, apply, health=health)
     except ValueError as e:  # export.ExportError: not expressible in the firmware's parameters

@@ -8,10 +8,13 @@ samples arrive. This script measures, side by side:
    :func:`onlinecal.ukf.unscented.sigma_points`) on a 5-term model — heading ψ, dip δ, bias b (3) —
    h = Rz(ψ)ᵀ (0, F cos δ, −F sin δ) + b, padded to the filter's 40 states with unrelated terms, the truth at the
    prior's mean: N sequential updates, and the same N samples as one update of their mean (what a rest does);
+   and the remedy of :mod:`onlinecal.ukf.learning` (session 19): the first look learns, the others hold the bias
+   and dip as consider states;
 2. the filter itself (:class:`onlinecal.ukf.OnlineCalibrator`) on the first 34 s of a simulated 180-s fixed-wing
    flight, its disarmed ground rest (still), started from the truth (σ of ``flight_stats.truth_start``): with its
-   rest update (one measurement per rest) and with rests turned off (``rest_blocks`` = 10⁹: every block a motion
-   update, as an armed vehicle on the ground or a straight and level leg gets).
+   rest update (one measurement per rest), with rests turned off (``rest_blocks`` = 10⁹: every block a motion
+   update, as an armed vehicle on the ground or a straight and level leg gets), and the same with every motion
+   block learning (``learn_angle_deg`` = 0: the filter before session 19).
 
     PYTHONPATH=. python benchmarks/nullspace_leak.py
 """
@@ -19,6 +22,7 @@ samples arrive. This script measures, side by side:
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -64,16 +68,29 @@ def toy(alpha: float, sigma_r: float, n_updates: int, pad: int = 35, seed: int =
     for z in zs:
         x, P = one(x, P, z, sigma_r**2)
     xm, Pm = one(x0, P0, zs.mean(0), sigma_r**2 / n_updates)
+    held = np.zeros(n, bool)
+    held[1:5] = True
+    xh, Ph = x0, P0
+    for k, z in enumerate(zs):
+        X = sigma_points(xh, Ph, alpha, 0.0, perm, True)
+        res = update(X - xh, xh, Ph, [Measurement("mag", z, _h(X), np.full(3, sigma_r**2))], Wm, Wc, gate,
+                     held if k else none)
+        xh, Ph = res.x, 0.5 * (res.P + res.P.T)
     return {"seq_sigma": float(np.sqrt(P[0, 0])), "seq_z": float((x[0] - truth[0]) / np.sqrt(P[0, 0])),
-            "mean_sigma": float(np.sqrt(Pm[0, 0])), "mean_z": float((xm[0] - truth[0]) / np.sqrt(Pm[0, 0]))}
+            "mean_sigma": float(np.sqrt(Pm[0, 0])), "mean_z": float((xm[0] - truth[0]) / np.sqrt(Pm[0, 0])),
+            "held_sigma": float(np.sqrt(Ph[0, 0])), "held_z": float((xh[0] - truth[0]) / np.sqrt(Ph[0, 0]))}
 
 
-def still_flight(rest: bool, seconds: int = 34) -> list[tuple[float, float, float, float]]:
+def still_flight(rest: bool, seconds: int = 34, learn_angle_deg: float | None = None
+                 ) -> list[tuple[float, float, float, float]]:
     """(t, σ heading °, σ mag.bias.y, its error in σ) of the filter on the fixed-wing's ground rest."""
     sim = simulate("fixedwing", 3, duration=180.0, imu_rate=200.0, mag_rate=50.0, earth_rate=False)
     T = sim.truth.calibration
     assert T.mag is not None
-    cal = OnlineCalibrator(truth_start(T), UKFConfig() if rest else UKFConfig(rest_blocks=10**9))
+    c = UKFConfig() if rest else UKFConfig(rest_blocks=10**9)
+    if learn_angle_deg is not None:
+        c = replace(c, learn_angle_deg=learn_angle_deg)
+    cal = OnlineCalibrator(truth_start(T), c)
     cal.new_log()
     i = NAMES.index("mag.bias.y")
     out = []
@@ -96,12 +113,15 @@ def main() -> None:
                 r = toy(alpha, sr, n)
                 print(f"   alpha {alpha:3.1f}  sigma_r {sr:.0e}  N {n:4d}: one by one sigma psi {r['seq_sigma']:.4f}"
                       f" (error {r['seq_z']:+5.2f} sigma) | their mean once {r['mean_sigma']:.4f}"
-                      f" ({r['mean_z']:+5.2f} sigma)")
+                      f" ({r['mean_z']:+5.2f} sigma) | held after the first {r['held_sigma']:.4f}"
+                      f" ({r['held_z']:+5.2f} sigma)")
     print("2. the filter on a still sensor (fixed-wing seed 3's ground rest, started from the truth)")
-    for rest in (True, False):
+    for rest, angle in ((True, None), (False, None), (False, 0.0)):
         label = "rest updates (default)" if rest else "every block a motion update (rest_blocks = 1e9)"
+        if angle is not None:
+            label += ", every one learning (learn_angle_deg = 0: before session 19)"
         print(f"   {label}:")
-        for t, sh, sb, z in still_flight(rest):
+        for t, sh, sb, z in still_flight(rest, learn_angle_deg=angle):
             print(f"     t {t:4.0f} s: sigma heading {sh:5.2f} deg, mag.bias.y sigma {sb:.4f}, error {z:+5.2f} sigma")
 
 

@@ -55,9 +55,12 @@ def test_xsens_extension_does_not_worsen_the_nis(data_dir) -> None:
     assert after["above_band"] <= before["above_band"] + 1e-12, (before["above_band"], after["above_band"])
     assert before["above_band"] <= 0.15, before  # the baseline is consistent from above: 3 of 49 (17 of 44 before)
     # and from below: the noise monitor no longer reads the hand's turns as noise (session 11; docs/flight.md):
-    # NIS 2.32 with 20 of 44 windows below the band before, 2.90 with 11 of 49 now
-    assert 2.6 < before["nis_mean"] < 3.4, before
-    assert before["outside_band"] - before["above_band"] <= 0.3, before
+    # NIS 2.32 with 20 of 44 windows below the band before, 2.90 with 11 of 49 after. Since session 19 a motion
+    # block at a geometry already learned holds the accelerometer's terms and its NIS stays out of the windows
+    # (.learning: a held look's innovation repeats the held terms' error, not a white sample): 2.53 with 14 of 45
+    # below (learning angle 0, as before: 2.91; 3°: 2.64)
+    assert 2.4 < before["nis_mean"] < 3.4, before
+    assert before["outside_band"] - before["above_band"] <= 0.33, before
     assert "ukf_guard" not in d.baseline
     assert d.calibration.extensions.get("g_sensitivity") is not None
     top = d.significant[0]

@@ -101,6 +101,10 @@ def test_the_disturbance_gate_is_saved_and_restored() -> None:
     (("_magd", "excluded"), -3, "'excluded'"),
     (("_magd", "since"), "yesterday", "'since'"),
     (("_magd",), {"__dc__": "DivergenceLog", "times": []}, "not a MagDisturbanceGate"),
+    (("_learn", "gates", "mag", "anchor"), [1.0, 2.0], "mag learning gate's anchor"),
+    (("_learn", "gates", "accel", "angle"), 0.5, "accel learning gate is not one of the config's angle"),
+    (("_learn", "held"), {"__tuple__": [1, 0]}, "'held'"),
+    (("_learn",), {"__dc__": "DivergenceLog", "times": []}, "not a Learning"),
 ])
 def test_a_damaged_history_or_gate_is_refused_in_one_line(tmp_path: Path, path: tuple, value: object,
                                                           what: str) -> None:
@@ -118,3 +122,22 @@ def test_a_damaged_history_or_gate_is_refused_in_one_line(tmp_path: Path, path: 
         load_checkpoint(p)
     line = str(e.value)
     assert "\n" not in line and line.startswith(str(p)) and "damaged checkpoint" in line and what.strip("'") in line
+
+
+def test_the_learning_gates_are_saved_and_restored() -> None:
+    """Schema /5 keeps where each sensor last learned its terms (.learning): a resumed run learns at the blocks an
+    uninterrupted one would. A /4 checkpoint (without them) resumes with fresh gates: its next block learns."""
+    from onlinecal.ukf.checkpoint import SCHEMA_V4
+
+    cal = OnlineCalibrator(None)
+    cal._learn.gates["mag"].anchor = np.array([0.1, -0.2, 0.45])
+    cal._learn.held = (False, True)
+    back = OnlineCalibrator.from_state(_through_json(cal))._learn
+    assert np.array_equal(back.gates["mag"].anchor, [0.1, -0.2, 0.45]) and back.gates["accel"].anchor is None
+    assert back.held == (False, True)
+    assert not back.gates["mag"].learns(np.array([0.1, -0.2, 0.45]), np.zeros(3))
+    old = _through_json(cal)
+    old["schema"] = SCHEMA_V4
+    del old["state"]["_learn"]
+    fresh = OnlineCalibrator.from_state(old)._learn
+    assert fresh.gates["mag"].anchor is None and fresh.gates["mag"].learns(np.array([0.1, -0.2, 0.45]), np.zeros(3))

@@ -71,7 +71,7 @@ def test_resume_through_json_is_bit_identical(t_cut):
     if t_cut < 30:
         assert cal._rest_acc is not None  # the checkpoint holds a running rest
     state = json.loads(json.dumps(cal.get_state(), allow_nan=False))
-    assert state["schema"] == STATE_SCHEMA == "onlinecal.ukf-state/4"
+    assert state["schema"] == STATE_SCHEMA == "onlinecal.ukf-state/5"
     assert set(state["state"]) == set(STATE_ATTRS) and len(state["x"]) == cal.n
     res = OnlineCalibrator.from_state(state)
     _feed(res, d, cuts[k:])

@@ -12,6 +12,10 @@ which decide whether the next one escalates to the cold prior) and the magnetic-
 (:class:`.magdisturb.MagDisturbanceGate`: armed, inside a stretch since when, blocks left out), so a run
 resumed right after a divergence or inside a disturbance goes on as an uninterrupted run would (issue 16).
 Their fields are checked on load (:func:`check_parts`): a damaged value is refused, never half-used.
+
+Schema /5 saves the learning gates (:class:`.learning.Learning`: the reading each of the accelerometer and the
+magnetometer last learned its terms at), so a resumed run learns at the blocks an uninterrupted one would; a /4
+or /3 checkpoint resumes with them fresh (its first motion block learns).
 """
 
 from __future__ import annotations
@@ -31,13 +35,15 @@ from .config import UKFConfig
 from .detectors import HoldTracker, Lattice, RailDetector, RestDetector
 from .divergence import DivergenceLog
 from .health import EventLog, NisMonitor, none_to_inf
+from .learning import LEARNED, Learning, LearningGate
 from .magdisturb import MagDisturbanceGate
 from .magstart import MagStart
 from .noise import NoiseModel
 from .rest import RestAccumulator
 from .vehicle import MotionCoverage, VehicleDetector
 
-STATE_SCHEMA = "onlinecal.ukf-state/4"
+STATE_SCHEMA = "onlinecal.ukf-state/5"
+SCHEMA_V4 = "onlinecal.ukf-state/4"
 SCHEMA_V3 = "onlinecal.ukf-state/3"
 SCHEMA_V2 = "onlinecal.ukf-state/2"
 
@@ -45,16 +51,18 @@ SCHEMA_V2 = "onlinecal.ukf-state/2"
 PARTS: dict[str, type] = {c.__name__: c for c in (
     SampleBuffer, Lattice, RailDetector, RestDetector, HoldTracker, NisMonitor, EventLog, NoiseModel,
     SensorSpec, VehicleDetector, MotionCoverage, RestAccumulator, MagStart, MagCollector, DivergenceLog,
-    MagDisturbanceGate)}
+    MagDisturbanceGate, Learning, LearningGate)}
 
 # the filter's attributes that change while it runs, besides x and P (plain lists at the top level);
 # everything else follows from config, init and holds
 STATE_ATTRS = ("R_nom", "prior_x", "prior_sigma", "_hold_sigma", "_rate", "_L", "_buf", "_t_last",
                "_w_last", "_att_ok", "_next_trace", "_n_imu", "_n_blocks", "_nis", "_log", "_trace",
                "_rest_det", "_lat", "_holds", "_hold_new", "_noise", "_rails", "_T0", "_vehicle", "_coverage",
-               "_rest_acc", "_mag", "_div", "_magd")
+               "_rest_acc", "_mag", "_div", "_magd", "_learn")
 # added in schema /4: absent from a /3 checkpoint, and then started fresh (as /3 always did)
 ATTRS_V4 = ("_div", "_magd")
+# added in schema /5: absent from a /4 or /3 checkpoint, and then started fresh (its next motion block learns)
+ATTRS_V5 = ("_learn",)
 
 
 def _float(v: float) -> Any:
@@ -141,8 +149,9 @@ def get_state(f: Any) -> dict[str, Any]:
 def check_schema(d: Any) -> str:
     """The checkpoint's schema; ValueError naming it unless it is one this version reads."""
     schema = d.get("schema") if isinstance(d, dict) else None
-    if schema not in (STATE_SCHEMA, SCHEMA_V3, SCHEMA_V2):
-        raise ValueError(f"not a UKF state (schema {schema!r}, expected {STATE_SCHEMA}, {SCHEMA_V3} or {SCHEMA_V2})")
+    if schema not in (STATE_SCHEMA, SCHEMA_V4, SCHEMA_V3, SCHEMA_V2):
+        raise ValueError(f"not a UKF state (schema {schema!r}, expected {STATE_SCHEMA}, {SCHEMA_V4}, {SCHEMA_V3} "
+                         f"or {SCHEMA_V2})")
     return str(schema)
 
 
@@ -162,7 +171,8 @@ def set_state(f: Any, d: dict[str, Any]) -> None:
     st = d["state"]
     if not isinstance(st, dict):
         raise ValueError("UKF state: 'state' is not an object")
-    missing = [a for a in STATE_ATTRS if a not in st and not (schema == SCHEMA_V3 and a in ATTRS_V4)]
+    optional = {STATE_SCHEMA: (), SCHEMA_V4: ATTRS_V5}.get(schema, ATTRS_V4 + ATTRS_V5)
+    missing = [a for a in STATE_ATTRS if a not in st and a not in optional]
     if missing:
         raise ValueError(f"UKF state: {len(missing)} part(s) missing ({', '.join(missing[:4])})")
     f.x, f.P = np.asarray(d["x"], float).reshape(f.n), np.asarray(d["P"], float).reshape(f.n, f.n)
@@ -205,6 +215,28 @@ def check_parts(f: Any) -> None:
         setattr(gate, name, float(v))
     if gate.active and math.isnan(gate.since):
         raise ValueError("UKF state: disturbance gate active without its start time")
+    check_learning(f)
+
+
+def check_learning(f: Any) -> None:
+    """ValueError naming the field unless ``f._learn`` is a :class:`.learning.Learning` of the filter's angle:
+    a gate per learned sensor, each anchor None or three finite numbers, ``held`` two bools."""
+    lrn = f._learn
+    if type(lrn) is not Learning:
+        raise ValueError(f"UKF state: the learning gates are a {type(lrn).__name__}, not a Learning")
+    angle = math.radians(f.config.learn_angle_deg)
+    if not isinstance(lrn.gates, dict) or sorted(lrn.gates) != sorted(LEARNED):
+        raise ValueError("UKF state: the learning gates are not one per accelerometer and magnetometer")
+    for s, g in lrn.gates.items():
+        if type(g) is not LearningGate or not _is_real(g.angle) or float(g.angle) != angle:
+            raise ValueError(f"UKF state: the {s} learning gate is not one of the config's angle")
+        a = g.anchor
+        if a is not None and not (isinstance(a, np.ndarray) and a.shape == (3,) and a.dtype.kind == "f"
+                                  and np.isfinite(a).all()):
+            raise ValueError(f"UKF state: the {s} learning gate's anchor is not three finite numbers")
+    if not (isinstance(lrn.held, tuple) and len(lrn.held) == 2 and all(type(h) is bool for h in lrn.held)):
+        raise ValueError("UKF state: the learning gates' 'held' is not two true/false values")
+    lrn.angle = angle
 
 
 def _set_state_v2(f: Any, d: dict[str, Any]) -> None:

@@ -141,6 +141,14 @@ class UKFConfig:
     # 12/12 at 4 and at 8, and 12/12 on the 12 further seeds not used to choose it (benchmarks/ukf_stats.py
     # --cold 90 --set update_damping=…)
     update_damping: float = 4.0
+    # the body-frame turn (degrees) of gravity (the accelerometer's reading), of the field (the magnetometer's)
+    # between two motion blocks that learn that sensor's terms (.learning); the blocks between use the sensor with
+    # its terms held. 0: every block learns (before session 19, when a still or straight stretch read its null
+    # space's curvature as information: 3-min fixed-wing flights started from their truth ended up to 12σ off).
+    # Those flights (seeds 0–5) end within 3σ at 5°, 2° and 1° alike; the prior-free NEES of what they determined
+    # is 48/95, 63/103 and 83/109 [99 % band ~0.6–1.4 × dof]: the larger the angle, the more of the data is left
+    # unused, so the smallest that still separates a still or straight stretch
+    learn_angle_deg: float = 1.0
     # σ (rad) of the gauge sensor's held terms on a cold start: B *is* that sensor's frame by definition (a
     # convention has no uncertainty). With the cold prior's 2° there instead, the relative alignment of the
     # other sensors to it was not learned (paper session, cold: gyro and mag alphas both ~1° off in the

@@ -653,8 +653,10 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
 
 def motion_consider(cal: OnlineCalibrator) -> NDArray[np.bool_]:
     """The consider mask of a motion update: the accelerometer's terms held too once a vehicle is detected
-    (:attr:`.state.StateLayout.consider_vehicle`)."""
-    return cal.lay.consider_vehicle if cal._vehicle.active else cal.lay.consider
+    (:attr:`.state.StateLayout.consider_vehicle`), and each sensor's whose geometry this block does not learn
+    (:class:`.learning.Learning`, decided by :func:`.step.motion_step`)."""
+    ha, hm = cal._learn.held
+    return cal.lay.consider_mask(cal._vehicle.active, ha, hm)
 
 
 def _field_dir(x: Array, m_mean: Array) -> tuple[float, float, float]:
@@ -680,6 +682,7 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
     # .step.gated_bookkeeping's loop on the kernel's values as Python numbers, without the
     # UpdateResult it reads them from (issue 15): the same records in the same order
     k = 0
+    held = cal._learn.held
     for s, on in (("accel", use_acc), ("mag", has_mag)):
         if not on:
             continue
@@ -695,7 +698,8 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
         if code == 2:  # dropped: counted, out of the windows
             cal._nis.reject(s, k_v)
             continue
-        cal._nis_record(s, v, tl, k_v)
+        if not held[s == "mag"]:  # (a held look's NIS is not a new sample: .learning.Learning.records)
+            cal._nis_record(s, v, tl, k_v)
         if code == 1:  # soft-gated
             cal._nis.reject(s, k_v)
     if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands

@@ -41,6 +41,7 @@ from .detectors import HoldTracker, Lattice, RailDetector, RestDetector
 from .detectors import value_lattice as value_lattice
 from .health import EventLog, NisMonitor, chi2_ppf
 from .layout import AXES, SENSOR_SLICE, index
+from .learning import Learning
 from .magdisturb import MagDisturbanceGate
 from .magstart import MagStart
 from .measurements import AccelModel, MagModel, Models, ZeroRateModel, misfit_of
@@ -107,6 +108,9 @@ class OnlineCalibrator:
         self._coverage = MotionCoverage()
         self._div = divergence.DivergenceLog()  # a step whose update diverged does not commit its posterior
         self._magd = MagDisturbanceGate()  # a stretch of disturbed field is left out of the mag update
+        # the accelerometer's and magnetometer's terms are learned in motion only at a new geometry (.learning);
+        # not checkpointed: a resumed run learns at its first block
+        self._learn = Learning(math.radians(c.learn_angle_deg))
         self._reset_calibration()
 
     def _configure(self) -> None:
@@ -226,6 +230,7 @@ class OnlineCalibrator:
         self._magd.new_log()
         self._lat.q = None  # a new log may come in another format: its lattice is detected again
         self._rest_det.reset()
+        self._learn.reset()
 
     def flush(self) -> None:
         """Process the IMU samples still buffered as one (short) block; a running rest is closed."""
@@ -263,6 +268,7 @@ class OnlineCalibrator:
         # the magnetometer stays calibrated unless the restart is cold: then it is fitted from raw samples again
         self._mag.restart(mag_on and r.kind != "cold")
         self._rest_acc = None
+        self._learn.reset()
         self._att_ok = False  # the attitude (and heading) restarts with the next block
         self._magd.disarm()
         if mag_only:

@@ -44,6 +44,7 @@ class StateLayout:
     dyn_pts: NDArray[np.intp] = field(init=False)
     consider: NDArray[np.bool_] = field(init=False)
     consider_vehicle: NDArray[np.bool_] = field(init=False)
+    learned_terms: dict[str, NDArray[np.bool_]] = field(init=False)
 
     def __post_init__(self) -> None:
         names = list(NAMES)
@@ -86,6 +87,33 @@ class StateLayout:
         for e, sl in self.ext_slice.items():
             if EXTENSIONS[e][0] == "accel":
                 self.consider_vehicle[sl] = True
+        # a motion block at a geometry already learned (.learning.Learning) holds that sensor's terms as well (the
+        # magnetometer's with the dip); consider_mask combines them
+        self.learned_terms = {}
+        for s in ("accel", "mag"):
+            m = np.zeros(len(self.names), bool)
+            m[SENSOR_SLICE[s]] = True
+            if s == "mag":
+                m[self.names.index("dip")] = True
+            for e, sl in self.ext_slice.items():
+                if EXTENSIONS[e][0] == s:
+                    m[sl] = True
+            self.learned_terms[s] = m
+        self._masks: dict[tuple[bool, bool, bool], NDArray[np.bool_]] = {}
+
+    def consider_mask(self, vehicle: bool, held_accel: bool, held_mag: bool) -> NDArray[np.bool_]:
+        """The consider mask of a motion update: :attr:`consider`, the accelerometer's terms on a ``vehicle``
+        (:attr:`consider_vehicle`), and each sensor's whose geometry this block does not learn (cached)."""
+        key = (vehicle, held_accel, held_mag)
+        m = self._masks.get(key)
+        if m is None:
+            m = (self.consider_vehicle if vehicle else self.consider).copy()
+            if held_accel:
+                m |= self.learned_terms["accel"]
+            if held_mag:
+                m |= self.learned_terms["mag"]
+            self._masks[key] = m
+        return m
 
     @property
     def n(self) -> int:

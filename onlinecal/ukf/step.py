@@ -23,6 +23,7 @@ from .attitude_init import fold_attitude
 from .blocks import Blocks
 from .kernels_unscented import predict_moments_motion, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
 from .layout import ATT, SENSOR_SLICE, index
+from .learning import LEARNED
 from .magdisturb import nis_in_order
 from .measurements import Offsets, ZeroRateModel, gyro_offsets, motion_measurements, rest_measurements
 from .outputs import temp_regressor, trace_row
@@ -38,6 +39,7 @@ if TYPE_CHECKING:
 
 Array = NDArray[np.float64]
 _GYR_BIAS, _GYR_SCALE = index("gyro", "bias"), index("gyro", "scale")
+_ACC_BIAS, _MAG_BIAS = index("accel", "bias"), index("mag", "bias")
 _UNJUDGED: Array = np.empty(0)  # the σ handed to the disturbance gate for a block it does not judge
 
 
@@ -51,6 +53,8 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     t, a, T = t_all[i:j], a_all[i:j], T_all[i:j]
     tl = float(t[-1])
     use_mag, mag_changed = mag_block(cal, tm_all[ml:mh], m_all[ml:mh], tl)
+    if mag_changed:
+        cal._learn.reset("mag")
     if c.latitude_deg is not None:  # (after mag_block: it may have turned the heading to north)
         earth.correct_block(cal, B, b)
         earth_allowance(cal)
@@ -230,7 +234,11 @@ def earth_rate_q(cal: OnlineCalibrator, q: Array, dt_blk: float) -> Array:
 
 def motion_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, a: Array, T: Array, n: dict[str, float],
                 held: dict[str, bool], use_mag: bool, clip: dict[str, bool]) -> None:
-    """Predict over the block, then one update with its mean accel (unless clipped) and mag."""
+    """Predict over the block, then one update with its mean accel (unless clipped) and mag; the magnetometer's
+    terms and the accelerometer's learned only at a new geometry (:class:`.learning.Learning`)."""
+    x = cal.x
+    cal._learn.decide(None if clip["accel"] or cal._vehicle.active else (B.a_mean[b], x[_ACC_BIAS]),
+                      (B.m_mean[b], x[_MAG_BIAS]) if use_mag else None)
     if fastpath.applies(cal, held, use_mag, clip):  # an ordinary block: two compiled calls (.fastpath)
         fastpath.motion_step_fast(cal, B, b, t, n, held, use_mag, clip)
         return
@@ -315,6 +323,11 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
             acc.walk = cal._noise.q_walk
         if acc.na:
             cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
+    # the rest's means are one measurement at its geometry: motion there has nothing new for those terms
+    if acc.na:
+        cal._learn.gates["accel"].seen(acc.sa / acc.na)
+    if use_mag and acc.nm:
+        cal._learn.gates["mag"].seen(acc.sm / acc.nm)
     x0, P0 = acc.x, acc.P + np.diag(acc.q)
     cal.x, cal.P, cal.R_nom = x0.copy(), P0, acc.R_nom
     if fastpath.rest_applies(cal):  # the rest's update in one compiled call (.fastpath)
@@ -372,8 +385,8 @@ def gated_bookkeeping(cal: OnlineCalibrator, res: UpdateResult, t: float, record
             # the filter's consistency — dropped and counted, kept out of the NIS windows
             cal._nis.reject(s, inflated)
             continue
-        if record:
-            cal._nis_record(s, nis, t, inflated)
+        if record and not (motion and s in LEARNED and cal._learn.held[LEARNED.index(s)]):
+            cal._nis_record(s, nis, t, inflated)  # (a held look's NIS is not a new sample: .learning.Learning)
         if status == "soft":
             cal._nis.reject(s, inflated)
 

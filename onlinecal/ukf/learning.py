@@ -49,12 +49,16 @@ class LearningGate:
         """Whether a motion block with raw mean reading ``mean`` (3,) learns the sensor's terms (``bias`` (3,)
         the state's bias, raw units). A block that learns becomes the anchor."""
         if self.angle <= 0.0 or self.anchor is None:
-            self.anchor = mean.copy()
+            self.anchor = np.array(mean, dtype=float)
             return True
-        f = mean - bias
-        d = mean - self.anchor
-        if math.sqrt(float(d @ d)) >= 2.0 * math.sin(0.5 * self.angle) * math.sqrt(float(f @ f)):
-            self.anchor = mean.copy()
+        # on Python floats: ~2 µs a motion block instead of numpy's ~10 (issue 15)
+        m0, m1, m2 = mean.tolist()
+        b0, b1, b2 = bias.tolist()
+        a0, a1, a2 = self.anchor.tolist()
+        chord = 2.0 * math.sin(0.5 * self.angle)
+        f2 = (m0 - b0) ** 2 + (m1 - b1) ** 2 + (m2 - b2) ** 2
+        if (m0 - a0) ** 2 + (m1 - a1) ** 2 + (m2 - a2) ** 2 >= chord * chord * f2:
+            self.anchor = np.array(mean, dtype=float)
             return True
         return False
 
@@ -88,8 +92,9 @@ class Learning:
     def decide(self, accel: tuple[Array, Array] | None, mag: tuple[Array, Array] | None) -> tuple[bool, bool]:
         """This motion block's ``held`` from each sensor's (raw mean (3,), state bias (3,)), None where the block
         does not update with that sensor (or its terms are held anyway)."""
-        self.held = tuple(m is not None and not self.gates[s].learns(*m)  # type: ignore[assignment]
-                          for s, m in zip(LEARNED, (accel, mag), strict=True))
+        g = self.gates
+        self.held = (accel is not None and not g["accel"].learns(*accel),
+                     mag is not None and not g["mag"].learns(*mag))
         return self.held
 
     def reset(self, sensor: str | None = None) -> None:

@@ -698,7 +698,7 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
         if code == 2:  # dropped: counted, out of the windows
             cal._nis.reject(s, k_v)
             continue
-        if not held[s == "mag"]:  # (a held look's NIS is not a new sample: .learning.Learning.records)
+        if not held[s == "mag"]:  # (a held look's NIS is not a new sample: .learning.Learning)
             cal._nis_record(s, v, tl, k_v)
         if code == 1:  # soft-gated
             cal._nis.reject(s, k_v)

@@ -108,8 +108,8 @@ class OnlineCalibrator:
         self._coverage = MotionCoverage()
         self._div = divergence.DivergenceLog()  # a step whose update diverged does not commit its posterior
         self._magd = MagDisturbanceGate()  # a stretch of disturbed field is left out of the mag update
-        # the accelerometer's and magnetometer's terms are learned in motion only at a new geometry (.learning);
-        # not checkpointed: a resumed run learns at its first block
+        # the accelerometer's and magnetometer's terms are learned in motion only at a new geometry (.learning;
+        # checkpointed since schema /5)
         self._learn = Learning(math.radians(c.learn_angle_deg))
         self._reset_calibration()
 

@@ -682,7 +682,7 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
     # .step.gated_bookkeeping's loop on the kernel's values as Python numbers, without the
     # UpdateResult it reads them from (issue 15): the same records in the same order
     k = 0
-    held = cal._learn.held
+    learn = cal._learn
     for s, on in (("accel", use_acc), ("mag", has_mag)):
         if not on:
             continue
@@ -698,7 +698,7 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
         if code == 2:  # dropped: counted, out of the windows
             cal._nis.reject(s, k_v)
             continue
-        if not held[s == "mag"]:  # (a held look's NIS is not a new sample: .learning.Learning)
+        if not learn.holds(s):  # (a held look's NIS is not a new sample: .learning.Learning)
             cal._nis_record(s, v, tl, k_v)
         if code == 1:  # soft-gated
             cal._nis.reject(s, k_v)

@@ -99,6 +99,14 @@ class Learning:
                      mag is not None and not g["mag"].learns(*mag))
         return self.held
 
+    def holds(self, sensor: str) -> bool:
+        """Whether this block's update holds ``sensor``'s terms (False for a sensor not in :data:`LEARNED`)."""
+        return sensor in LEARNED and self.held[LEARNED.index(sensor)]
+
+    def seen(self, sensor: str, mean: Array) -> None:
+        """A rest applied ``sensor``'s mean reading ``mean`` (3,) as one measurement (:meth:`LearningGate.seen`)."""
+        self.gates[sensor].seen(mean)
+
     def reset(self, sensor: str | None = None) -> None:
         for s, g in self.gates.items():
             if sensor is None or s == sensor:

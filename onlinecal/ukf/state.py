@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from ..model import PARAMS, SENSORS, Calibration, SensorCalibration
 from .config import EXTENSIONS, UKFConfig
 from .layout import ATT, AXES, DIP, N_STATE, NAMES, SENSOR_SLICE, index
+from .learning import LEARNED
 
 Array = NDArray[np.float64]
 
@@ -90,7 +91,7 @@ class StateLayout:
         # a motion block at a geometry already learned (.learning.Learning) holds that sensor's terms as well (the
         # magnetometer's with the dip); consider_mask combines them
         self.learned_terms = {}
-        for s in ("accel", "mag"):
+        for s in LEARNED:
             m = np.zeros(len(self.names), bool)
             m[SENSOR_SLICE[s]] = True
             if s == "mag":

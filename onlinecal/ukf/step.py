@@ -23,7 +23,6 @@ from .attitude_init import fold_attitude
 from .blocks import Blocks
 from .kernels_unscented import predict_moments_motion, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
 from .layout import ATT, SENSOR_SLICE, index
-from .learning import LEARNED
 from .magdisturb import nis_in_order
 from .measurements import Offsets, ZeroRateModel, gyro_offsets, motion_measurements, rest_measurements
 from .outputs import temp_regressor, trace_row
@@ -325,9 +324,9 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
             cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
     # the rest's means are one measurement at its geometry: motion there has nothing new for those terms
     if acc.na:
-        cal._learn.gates["accel"].seen(acc.sa / acc.na)
+        cal._learn.seen("accel", acc.sa / acc.na)
     if use_mag and acc.nm:
-        cal._learn.gates["mag"].seen(acc.sm / acc.nm)
+        cal._learn.seen("mag", acc.sm / acc.nm)
     x0, P0 = acc.x, acc.P + np.diag(acc.q)
     cal.x, cal.P, cal.R_nom = x0.copy(), P0, acc.R_nom
     if fastpath.rest_applies(cal):  # the rest's update in one compiled call (.fastpath)
@@ -385,7 +384,7 @@ def gated_bookkeeping(cal: OnlineCalibrator, res: UpdateResult, t: float, record
             # the filter's consistency — dropped and counted, kept out of the NIS windows
             cal._nis.reject(s, inflated)
             continue
-        if record and not (motion and s in LEARNED and cal._learn.held[LEARNED.index(s)]):
+        if record and not (motion and cal._learn.holds(s)):
             cal._nis_record(s, nis, t, inflated)  # (a held look's NIS is not a new sample: .learning.Learning)
         if status == "soft":
             cal._nis.reject(s, inflated)

@@ -29,6 +29,7 @@ The machine this runs on may be shared: the real-time factor is wall-clock and s
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -350,6 +351,10 @@ def main() -> None:
                     help="diagnostic only: the vehicle-acceleration model's τ_v (s; default the config's)")
     ap.add_argument("--sp-alpha", type=float, default=None,
                     help="diagnostic only: the scaled unscented transform's spread α (default the config's)")
+    ap.add_argument("--yaw-free-sigma", type=float, default=None,
+                    help="diagnostic only: σ of the heading while no mag sees it (rad; default the config's)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
+                    help="diagnostic only: a UKFConfig field for this run (e.g. update_damping=0)")
     ap.add_argument("--latitude", type=float, default=DEFAULT_LATITUDE_DEG,
                     help=f"deg, where the flights' gyro senses the Earth's rotation (default {DEFAULT_LATITUDE_DEG})")
     ap.add_argument("--no-earth-rate", action="store_true", help="diagnostic: flights without the Earth's rotation")
@@ -372,8 +377,10 @@ def main() -> None:
                               ("vehicle_accel_sigma", args.vehicle_accel_sigma),
                               ("vehicle_accel_tau", args.vehicle_accel_tau),
                               ("sp_alpha", args.sp_alpha),
+                              ("yaw_free_sigma", args.yaw_free_sigma),
                               ("latitude_deg", args.latitude if args.filter_latitude else None),
                               ("declination_sigma_deg", args.declination_sigma)) if v is not None}
+    over.update({k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)})
     config = UKFConfig(**over) if over else None
     print("# flights' gyro: " + ("no Earth rate (diagnostic)" if args.no_earth_rate else
           f"Earth rate at latitude {args.latitude:g}°") + "; bench sessions: paper profile, no Earth rate"

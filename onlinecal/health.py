@@ -330,6 +330,83 @@ class RawDigest:
         self._flush()
         return self._seen[sensor] > 0
 
+    # A checkpoint of the digest (a live run's, :mod:`onlinecal.ukf.live_files`): the blocks as rows of ROW numbers
+    # (each sensor's raw mean (3) and covariance (9), gyro then accel), which only grow and so are appended to a
+    # file beside the checkpoint, and the rest (:meth:`state`: the rail's top and candidates, the samples seen, the
+    # partial block carried to the next feed), small, in the checkpoint itself.
+    ROW = 24
+
+    def rows(self, start: int = 0) -> np.ndarray:
+        """The blocks digested from block ``start`` on, (blocks − start, :attr:`ROW`): per block the gyro's raw mean
+        (3,) and covariance (9,), then the accelerometer's."""
+        self._flush()
+        out = np.empty((max(0, self._blocks_done - start), self.ROW))
+        for k, s in enumerate(self.SENSORS):
+            m, c = self._tail(self._mean[s], start), self._tail(self._cov[s], start)
+            out[:, 12 * k: 12 * k + 3] = m
+            out[:, 12 * k + 3: 12 * k + 12] = c.reshape(-1, 9)
+        return out
+
+    @staticmethod
+    def _tail(chunks: list[np.ndarray], start: int) -> np.ndarray:
+        """Rows from ``start`` on of a list of chunks, joining only the chunks that hold them."""
+        n = sum(c.shape[0] for c in chunks)
+        keep, have = [], n
+        for c in reversed(chunks):
+            if have <= start:
+                break
+            lo = max(0, start - (have - c.shape[0]))
+            keep.append(c[lo:])
+            have -= c.shape[0]
+        if not keep:
+            return np.zeros((0, *chunks[0].shape[1:])) if chunks else np.zeros((0, 3))
+        return np.concatenate(keep[::-1])
+
+    def state(self) -> dict[str, Any]:
+        """Everything of the digest but its blocks' rows (:meth:`rows`), JSON-serialisable (floats as Python
+        floats: exact through JSON)."""
+        self._flush()
+        return {
+            "blocks": self._blocks_done,
+            "seen": dict(self._seen),
+            "top": {s: self._top[s].tolist() for s in self.SENSORS},
+            "near": {s: [[idx.tolist(), val.tolist()] for idx, val in self._near[s]] for s in self.SENSORS},
+            "carry": None if self._carry is None else [self._carry[0].tolist(), self._carry[1].tolist()],
+        }
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any], rows: np.ndarray) -> RawDigest:
+        """The digest of :meth:`state` and its ``rows`` (:meth:`rows` from 0). ValueError (one line) when the two
+        do not belong together or a part is malformed."""
+        d = cls()
+        rows = np.asarray(rows, float)
+        n = int(state["blocks"])
+        if rows.ndim != 2 or rows.shape[1] != cls.ROW or rows.shape[0] != n:
+            raise ValueError(f"the digest records {n} blocks, its rows are {rows.shape}")
+        for k, s in enumerate(cls.SENSORS):
+            d._mean[s] = [rows[:, 12 * k: 12 * k + 3].copy()] if n else []
+            d._cov[s] = [rows[:, 12 * k + 3: 12 * k + 12].reshape(-1, 3, 3).copy()] if n else []
+            d._seen[s] = int(state["seen"][s])
+            top = np.asarray(state["top"][s], float)
+            if top.shape != (3,) or d._seen[s] < 0:
+                raise ValueError(f"the digest's {s} top is {top.shape}, seen {d._seen[s]}")
+            d._top[s] = top
+            near = state["near"][s]
+            if len(near) != 3:
+                raise ValueError(f"the digest's {s} rail candidates hold {len(near)} axes, not 3")
+            pairs = [(np.asarray(i, np.int64).reshape(-1), np.asarray(v, float).reshape(-1)) for i, v in near]
+            if any(i.size != v.size for i, v in pairs):
+                raise ValueError(f"the digest's {s} rail candidates: indices and values differ in length")
+            d._near[s] = pairs
+        carry = state["carry"]
+        if carry is not None:
+            w, a = (np.asarray(c, float).reshape(-1, 3) for c in carry)
+            if w.shape != a.shape or w.shape[0] >= REST_BLOCK:
+                raise ValueError(f"the digest's partial block is {w.shape} and {a.shape}")
+            d._carry = [w, a]
+        d._blocks_done = n
+        return d
+
 
 def _digest(raw: dict[str, Any] | RawDigest | None) -> RawDigest | None:
     if raw is None or isinstance(raw, RawDigest):

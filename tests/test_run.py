@@ -231,6 +231,16 @@ def test_kill_9_and_resume_matches_uninterrupted_run(paper, uninterrupted) -> No
           f"of data missed; max |Δ|/σ = {z:.2f} ({name}); >1σ: "
           + ", ".join(f"{k} {v:.2f}" for k, v in sorted(zs.items(), key=lambda kv: -kv[1]) if v > 1))
     assert z <= 3.0, name
+    # Session 20: the health verdict read every sample fed across the kill (the raw digest is in the checkpoint,
+    # its rows in FILE.digest): the uninterrupted run's rest blocks less at most those of the missed stretch.
+    # Before, only the samples fed after the resume counted: the static positions before the kill did not.
+    rests = [json.loads(p.read_text())["health"]["checks"]["gravity_at_rest"]["rest_blocks"]
+             for p in (paper.dir / "live.json", out)]
+    gap_blocks = (link["lost"] - exp["lost"]) // 50 + 2
+    print(f"rest blocks read by the health verdict: uninterrupted {rests[0]}, resumed {rests[1]} (the gap: "
+          f"{gap_blocks} blocks at most)")
+    assert rests[0] - gap_blocks - 2 <= rests[1] <= rests[0], rests
+    assert "raw digest" not in second.err.read_text()
 
 
 @pytest.mark.slow

@@ -34,7 +34,16 @@ from ..io.mavlink import MAV_PARAM_TYPE_INT32
 from ..model import Calibration
 from .filter import OnlineCalibrator, UKFConfig
 from .live_files import CHECKPOINT_SCHEMA as CHECKPOINT_SCHEMA  # re-exported
-from .live_files import COUNTERS, TraceCsv, load_checkpoint, status_line, write_atomic
+from .live_files import (
+    COUNTERS,
+    DigestFile,
+    TraceCsv,
+    digest_path,
+    load_checkpoint,
+    load_digest,
+    status_line,
+    write_atomic,
+)
 from .replay import OnlineResult
 
 if TYPE_CHECKING:
@@ -122,6 +131,8 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
     if status_every_s is None:
         status_every_s = 5.0 if out.isatty() else 30.0
     ck, cal, duration_s = _start(checkpoint, resume, init, config, duration_s, out)
+    # the samples' raw digest of a resumed run, before the link opens (a damaged entry is a LogError like the rest)
+    restored = load_digest(ck, checkpoint) if ck is not None and checkpoint is not None else None
     from ..io.live import LiveSource
     opts = {"timeout_s": idle_timeout_s, **(source_options or {})}
     wait_gps = ck is None and gps_wait_s > 0 and cal.config.latitude_deg is None
@@ -130,6 +141,11 @@ def run_live(url: str, init: Calibration | None = None, *, config: UKFConfig | N
                      ask_gps=wait_gps, **opts)
     run = _LiveRun(url, cal, src, ck, checkpoint, rate_hz, duration_s, TraceCsv(trace_out, resume=ck is not None),
                    transform, out)
+    if restored is not None:
+        run.digest, run.rows_file, lost = restored
+        if lost is not None:
+            print(f"onlinecal run: warning: {lost}", file=out, flush=True)
+            run.notes.append(lost)
     if wait_gps:
         run.wait_for_gps(gps_wait_s, lambda c: OnlineCalibrator(init, c), gps_declination)
     if ck is not None:
@@ -199,9 +215,11 @@ class _LiveRun:
         self.make_cal: Callable[[UKFConfig], OnlineCalibrator] | None = None
         self.gps_declination: float | None = None
         self.held: list[tuple[ImuData, dict[str, Any]]] = []  # blocks held back while waiting for a GPS fix
-        # what the health verdict reads of the samples fed (gravity at rest, the rail): this process's only, not
-        # in the checkpoint (a resumed run's verdict judges the samples since the resume)
+        # what the health verdict reads of the samples fed (gravity at rest, the rail): in the checkpoint, its
+        # block rows appended to FILE.digest (a resumed run's verdict judges every sample fed since the start)
         self.digest = RawDigest()
+        self.rows_file: DigestFile | None = DigestFile(digest_path(checkpoint)) if checkpoint is not None else None
+        self.notes: list[str] = []  # warnings of this run beside the link's (a raw digest that was not restored)
 
     def wait_for_gps(self, wait_s: float, make_cal: Callable[[UKFConfig], OnlineCalibrator],
                      declination: float | None = None) -> None:
@@ -259,10 +277,14 @@ class _LiveRun:
         if self.checkpoint is None or pos is None:
             return
         self.trace.add(self.cal.trace_rows(clear=True))  # rows go to the CSV, not into every checkpoint
+        digest = None
+        if self.rows_file is not None:
+            self.rows_file.append(self.digest.rows(self.rows_file.written or 0))  # durable before the checkpoint
+            digest = {"file": self.rows_file.path.name, "state": self.digest.state()}
         payload = {"schema": CHECKPOINT_SCHEMA, "written": datetime.now(UTC).isoformat(),
                    "url": self.url, "rate_hz": self.rate_hz, "duration_s": self.duration_s, "source": pos,
                    "link": self.link_stats(), "fed": self.fed, "segments": self.segments,
-                   "filter": self.cal.get_state()}
+                   "filter": self.cal.get_state(), "digest": digest}
         write_atomic(self.checkpoint, json.dumps(payload))
         self.n_ckpt += 1
 
@@ -372,7 +394,7 @@ class _LiveRun:
         result = LiveResult(res_cal, list(cal.events), cal.nis_summary(), cal.observability(),
                             cal.missing_motion(), [], int(self.fed["imu"]), wall, data_s, None, link=stats,
                             stop_reason=stats["stop_reason"], checkpoints=self.n_ckpt, resumes=self.resumes,
-                            warnings=list(self.src.warnings))
+                            warnings=list(self.src.warnings) + self.notes)
         result.boundaries = [dict(b) for b in self.segments]
         result.raw_digest = self.digest
         return result

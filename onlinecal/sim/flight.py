@@ -315,10 +315,10 @@ def _span(t: NDArray[np.floating[Any]], a: float, b: float) -> slice:
 
 
 def multirotor_trajectory(rng: np.random.Generator, duration: float = 600.0, rest_s: float = REST_S,
-                          dt: float = DT) -> VehicleTrajectory:
+                          dt: float = DT, legs_s: tuple[float, float] = (8.0, 25.0)) -> VehicleTrajectory:
     """A multirotor's flight: disarmed rest, arm, climb to ~10 m, legs of constant velocity setpoints
-    (0–8 m/s horizontal, ±1.5 m/s vertical) with yaw turns of up to ±180° per leg at ≤ 45°/s, return to a
-    hover, descend, land, disarm, rest."""
+    (0–8 m/s horizontal, ±1.5 m/s vertical) lasting ``legs_s`` (shortest, longest) s with yaw turns of up to
+    ±180° per leg at ≤ 45°/s, return to a hover, descend, land, disarm, rest."""
     n = int(round(duration / dt)) + 1
     t = np.arange(n) * dt
     cmd = np.zeros((n, 6))
@@ -337,7 +337,7 @@ def multirotor_trajectory(rng: np.random.Generator, duration: float = 600.0, res
     cmd[climb, 2] = 1.7
     segs.append({"kind": "flight", "t0": t_to, "t1": t_to + 6.0, "label": "take-off"})
     psi = psi0
-    for a, b in _legs(rng, t_to + 6.0, t_land, 8.0, 25.0):
+    for a, b in _legs(rng, t_to + 6.0, t_land, *legs_s):
         leg = _span(t, a, b)
         sp, dirn = float(rng.uniform(0, 8)), float(rng.uniform(-np.pi, np.pi))
         vz = float(rng.choice([0.0, 0.0, rng.uniform(-1.5, 1.5)]))
@@ -364,9 +364,10 @@ def multirotor_trajectory(rng: np.random.Generator, duration: float = 600.0, res
 
 
 def fixedwing_trajectory(rng: np.random.Generator, duration: float = 600.0, rest_s: float = REST_S,
-                         dt: float = DT) -> VehicleTrajectory:
-    """A fixed-wing's flight: disarmed rest, engine run-up, take-off roll to 14 m/s, climb, legs of level
-    flight, banked turns (±10–30°) and climbs at 16–22 m/s, descent, landing roll, rest."""
+                         dt: float = DT, legs_s: tuple[float, float] = (10.0, 30.0)) -> VehicleTrajectory:
+    """A fixed-wing's flight: disarmed rest, engine run-up, take-off roll to 14 m/s, climb, legs lasting
+    ``legs_s`` (shortest, longest) s of level flight, banked turns (±10–30°: at the longest, a loiter's circles)
+    and climbs at 16–22 m/s, descent, landing roll, rest."""
     n = int(round(duration / dt)) + 1
     t = np.arange(n) * dt
     cmd = np.zeros((n, 6))
@@ -390,7 +391,7 @@ def fixedwing_trajectory(rng: np.random.Generator, duration: float = 600.0, rest
     climb = (t >= t_air) & (t < t_air + 12.0)
     cmd[climb, 0], cmd[climb, 2] = 17.0, 2.5
     segs.append({"kind": "flight", "t0": t_air, "t1": t_air + 12.0, "label": "climb-out"})
-    for a, b in _legs(rng, t_air + 12.0, t_app, 10.0, 30.0):
+    for a, b in _legs(rng, t_air + 12.0, t_app, *legs_s):
         leg = _span(t, a, b)
         cmd[leg, 0] = float(rng.uniform(16, 22))
         turn = int(rng.integers(0, 3)) > 0  # two legs in three are turns

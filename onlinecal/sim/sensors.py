@@ -268,7 +268,9 @@ class ProfileError(ValueError):
 def parse_profile(spec: str) -> tuple[str, dict[str, float]]:
     """``NAME[:key=value,...]`` → (name, options). Vehicle options: ``vibration`` (RMS m/s² on body z at
     hover, x/y 0.6 of it; 0 off), ``mag_interference`` (field units per unit throttle, along body
-    (0.3, −0.2, 0.9)), ``rest`` (s of disarmed ground rest before arming, ≥ 30)."""
+    (0.3, −0.2, 0.9)), ``rest`` (s of disarmed ground rest before arming, ≥ 30), ``legs`` (s, ≥ 12: the longest
+    leg of the flight, the legs then lasting legs/3 to legs; by default 8–25 s for a multirotor, 10–30 s for a
+    fixed-wing, whose turns at legs=180 are loiters of up to three minutes at one bank)."""
     name, _, rest = spec.partition(":")
     if name not in PROFILES:
         raise ProfileError(f"unknown profile {name!r} ({', '.join(PROFILES)})")
@@ -278,8 +280,8 @@ def parse_profile(spec: str) -> tuple[str, dict[str, float]]:
             raise ProfileError(f"profile {name!r} takes no options ({spec!r})")
         for kv in rest.split(","):
             k, eq, v = kv.partition("=")
-            if k not in ("vibration", "mag_interference", "rest") or not eq:
-                raise ProfileError(f"{spec!r}: unknown option {kv!r} (vibration=, mag_interference=, rest=)")
+            if k not in ("vibration", "mag_interference", "rest", "legs") or not eq:
+                raise ProfileError(f"{spec!r}: unknown option {kv!r} (vibration=, mag_interference=, rest=, legs=)")
             try:
                 opts[k] = float(v)
             except ValueError as e:
@@ -288,19 +290,24 @@ def parse_profile(spec: str) -> tuple[str, dict[str, float]]:
                 raise ProfileError(f"{spec!r}: {k} must be finite and ≥ 0")
         if opts.get("rest", 30.0) < 30.0:
             raise ProfileError(f"{spec!r}: the ground rest must last at least 30 s")
+        if opts.get("legs", 30.0) < 12.0:
+            raise ProfileError(f"{spec!r}: the longest leg must last at least 12 s (a turn rolls in and out over 4 s)")
     return name, opts
 
 
 def make_trajectory(profile: str, rng: np.random.Generator, duration: float | None,
-                    rest_s: float | None = None) -> Trajectory | VehicleTrajectory:
+                    rest_s: float | None = None, legs_s: float | None = None) -> Trajectory | VehicleTrajectory:
     if profile == "paper":
         return paper_trajectory(rng)
     if profile == "flight":
         return flight_trajectory(rng, duration or 300.0)
+    kw: dict[str, Any] = {"rest_s": rest_s} if rest_s else {}
+    if legs_s:
+        kw["legs_s"] = (legs_s / 3.0, legs_s)
     if profile == "multirotor":
-        return multirotor_trajectory(rng, duration or 600.0, **({"rest_s": rest_s} if rest_s else {}))
+        return multirotor_trajectory(rng, duration or 600.0, **kw)
     if profile == "fixedwing":
-        return fixedwing_trajectory(rng, duration or 600.0, **({"rest_s": rest_s} if rest_s else {}))
+        return fixedwing_trajectory(rng, duration or 600.0, **kw)
     raise ProfileError(f"unknown profile {profile!r} ({', '.join(PROFILES)})")
 
 
@@ -345,7 +352,8 @@ def simulate(
     rng = np.random.default_rng(seed)
     cal = truth if truth is not None else paper_truth(rng)
     # (the rest option only when given: tests replace make_trajectory with a 3-argument stand-in)
-    traj = make_trajectory(name, rng, duration, **({"rest_s": opts["rest"]} if "rest" in opts else {}))
+    traj = make_trajectory(name, rng, duration, **({"rest_s": opts["rest"]} if "rest" in opts else {}),
+                           **({"legs_s": opts["legs"]} if "legs" in opts else {}))
     w_E = earth_rate_world(latitude)  # validates the latitude whether or not it is used
     if earth_rate if earth_rate is not None else name in VEHICLES:
         traj.earth_rate = w_E  # every evaluation (time_offset and lever_arm re-evaluate) includes it

@@ -602,8 +602,8 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
             lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, np.asarray(cal._earth[0]),
             c.vehicle_accel_tau, cal._earth[1], jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
-            mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates, motion_consider(cal),
-            float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
+            mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates,
+            motion_consider(cal, has_mag), float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
         if stage == 0:
             cal._diverged("covariance is not positive definite", tl)
             return
@@ -646,17 +646,18 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         var_a += var_v
     x, P, nis, status, solved, R_new, fine = update_fold_kernel(
         X, Y, x_pred, P_pred, f_body, h_body, s_o, s_Mi, a_mean, use_acc, var_a, B.m_mean[b], has_mag, var_mag,
-        hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, motion_consider(cal), float(c.update_damping), cal.R_nom,
-        yaw)
+        hold_a, hold_m, c.gravity, cal._Wm, cal._Wc, gates, motion_consider(cal, has_mag), float(c.update_damping),
+        cal.R_nom, yaw)
     _finish_motion(cal, st, x, P, nis.tolist(), status.tolist(), solved, R_new, fine, use_acc, has_mag, var_v, tl)
 
 
-def motion_consider(cal: OnlineCalibrator) -> NDArray[np.bool_]:
+def motion_consider(cal: OnlineCalibrator, mag_in: bool) -> NDArray[np.bool_]:
     """The consider mask of a motion update: the accelerometer's terms held too once a vehicle is detected
-    (:attr:`.state.StateLayout.consider_vehicle`), and each sensor's whose geometry this block does not learn
-    (:class:`.learning.Learning`, decided by :func:`.step.motion_step`)."""
+    (:attr:`.state.StateLayout.consider_vehicle`) and, in an update without the magnetometer (``mag_in`` False), the
+    gyro's x/y scales (:attr:`.state.StateLayout.gyro_tilt_terms`), and each sensor's whose geometry this block does
+    not learn (:class:`.learning.Learning`, decided by :func:`.step.motion_step`)."""
     ha, hm = cal._learn.held
-    return cal.lay.consider_mask(cal._vehicle.active, ha, hm)
+    return cal.lay.consider_mask(cal._vehicle.active, ha, hm, mag_in)
 
 
 def _field_dir(x: Array, m_mean: Array) -> tuple[float, float, float]:

@@ -45,6 +45,7 @@ class StateLayout:
     dyn_pts: NDArray[np.intp] = field(init=False)
     consider: NDArray[np.bool_] = field(init=False)
     consider_vehicle: NDArray[np.bool_] = field(init=False)
+    gyro_tilt_terms: NDArray[np.bool_] = field(init=False)
     learned_terms: dict[str, NDArray[np.bool_]] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -88,6 +89,18 @@ class StateLayout:
         for e, sl in self.ext_slice.items():
             if EXTENSIONS[e][0] == "accel":
                 self.consider_vehicle[sl] = True
+        # ... and where the accelerometer is the update's only attitude reference (no magnetometer in it), the gyro's x
+        # and y scales too: a roll or pitch scale error tilts the integrated attitude in proportion to the bank or pitch
+        # itself, which is exactly the tilt of a coordinated turn's specific force (along body z at any bank) and of a
+        # multirotor's thrust tilted to accelerate, both of which the accelerometer reads as "level". Learned there,
+        # the scales were pulled low on every cold flight (session 20, 12 seeds: mean z of gyro.scale.x/y −2.1/−2.2
+        # fixed-wing, −1.1 multirotor; 0.68–0.92 for a truth of 1.14, "undetermined" at 0.7 of the prior σ); held,
+        # −0.8/−0.7, the prior's own offset. The z scale, which a turn tilts only through the body's tilt, showed no
+        # such pull (mean z +0.1, −0.1) and is learned; rests update all of them, the cross-covariance with the
+        # attitude kept through the motion (eq. 36's attitude change between rests)
+        self.gyro_tilt_terms = np.zeros(n, bool)
+        for a in "xy":
+            self.gyro_tilt_terms[names.index(f"gyro.scale.{a}")] = True
         # a motion block at a geometry already learned (.learning.Learning) holds that sensor's terms as well (the
         # magnetometer's with the dip); consider_mask combines them
         self.learned_terms = {}
@@ -100,15 +113,18 @@ class StateLayout:
                 if EXTENSIONS[e][0] == s:
                     m[sl] = True
             self.learned_terms[s] = m
-        self._masks: dict[tuple[bool, bool, bool], NDArray[np.bool_]] = {}
+        self._masks: dict[tuple[bool, bool, bool, bool], NDArray[np.bool_]] = {}
 
-    def consider_mask(self, vehicle: bool, held_accel: bool, held_mag: bool) -> NDArray[np.bool_]:
+    def consider_mask(self, vehicle: bool, held_accel: bool, held_mag: bool, mag_in: bool = True) -> NDArray[np.bool_]:
         """The consider mask of a motion update: :attr:`consider`, the accelerometer's terms on a ``vehicle``
-        (:attr:`consider_vehicle`), and each sensor's whose geometry this block does not learn (cached)."""
-        key = (vehicle, held_accel, held_mag)
+        (:attr:`consider_vehicle`) and, when the update holds no magnetometer (``mag_in`` False), the gyro's x/y
+        scales (:attr:`gyro_tilt_terms`), and each sensor's whose geometry this block does not learn (cached)."""
+        key = (vehicle, held_accel, held_mag, mag_in)
         m = self._masks.get(key)
         if m is None:
             m = (self.consider_vehicle if vehicle else self.consider).copy()
+            if vehicle and not mag_in:
+                m |= self.gyro_tilt_terms
             if held_accel:
                 m |= self.learned_terms["accel"]
             if held_mag:

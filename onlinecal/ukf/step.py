@@ -360,7 +360,7 @@ def gated_update(cal: OnlineCalibrator, Y: Array, x_pred: Array, P_pred: Array, 
     :func:`.fastpath.motion_consider`'s), then the NIS bookkeeping in measurement order (``record``: the NIS
     values enter the windows; ``inflated`` = k > 0: the accel R carried the vehicle disturbance,
     :meth:`.health.NisMonitor.record`)."""
-    consider = cal.lay.consider if static else fastpath.motion_consider(cal)
+    consider = cal.lay.consider if static else fastpath.motion_consider(cal, any(m.name == "mag" for m in meas))
     res = update(Y, x_pred, P_pred, meas, cal._Wm, cal._Wc, Gating(cal._gates, static), consider, damp, post)
     gated_bookkeeping(cal, res, t, record, inflated, motion=not static)
     return res

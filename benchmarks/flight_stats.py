@@ -351,8 +351,6 @@ def main() -> None:
                     help="diagnostic only: the vehicle-acceleration model's τ_v (s; default the config's)")
     ap.add_argument("--sp-alpha", type=float, default=None,
                     help="diagnostic only: the scaled unscented transform's spread α (default the config's)")
-    ap.add_argument("--yaw-free-sigma", type=float, default=None,
-                    help="diagnostic only: σ of the heading while no mag sees it (rad; default the config's)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
                     help="diagnostic only: a UKFConfig field for this run (e.g. update_damping=0)")
     ap.add_argument("--latitude", type=float, default=DEFAULT_LATITUDE_DEG,
@@ -377,7 +375,6 @@ def main() -> None:
                               ("vehicle_accel_sigma", args.vehicle_accel_sigma),
                               ("vehicle_accel_tau", args.vehicle_accel_tau),
                               ("sp_alpha", args.sp_alpha),
-                              ("yaw_free_sigma", args.yaw_free_sigma),
                               ("latitude_deg", args.latitude if args.filter_latitude else None),
                               ("declination_sigma_deg", args.declination_sigma)) if v is not None}
     over.update({k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)})

@@ -98,7 +98,7 @@ def load_digest(ck: dict[str, Any], checkpoint: str | Path) -> tuple[RawDigest, 
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
         raise LogError(str(checkpoint), f"damaged checkpoint (raw digest: {type(e).__name__}: {e})") from None
     try:
-        rows = rows_file.resume(blocks, RawDigest.ROW)
+        rows = rows_file.resume(blocks)
     except ValueError as e:
         rows_file = DigestFile(rows_file.path)  # started anew at the first checkpoint
         return RawDigest(), rows_file, (f"{e}: the samples' raw digest is lost, the health verdict judges the samples "
@@ -134,9 +134,10 @@ class DigestFile:
             os.fsync(fh.fileno())
         self.written += int(rows.shape[0])
 
-    def resume(self, blocks: int, row: int) -> np.ndarray:
-        """The first ``blocks`` rows of ``row`` numbers (those the checkpoint records), the file cut to them so that
-        the run appends after them. ValueError (one line) when the file is missing, not a digest, or short."""
+    def resume(self, blocks: int) -> np.ndarray:
+        """The first ``blocks`` rows (those the checkpoint records), the file cut to them so that the run appends
+        after them. ValueError (one line) when the file is missing, not a digest, or short."""
+        row = RawDigest.ROW
         try:
             raw = self.path.read_bytes()
         except FileNotFoundError:

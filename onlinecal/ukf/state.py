@@ -115,7 +115,7 @@ class StateLayout:
             self.learned_terms[s] = m
         self._masks: dict[tuple[bool, bool, bool, bool], NDArray[np.bool_]] = {}
 
-    def consider_mask(self, vehicle: bool, held_accel: bool, held_mag: bool, mag_in: bool = True) -> NDArray[np.bool_]:
+    def consider_mask(self, vehicle: bool, held_accel: bool, held_mag: bool, mag_in: bool) -> NDArray[np.bool_]:
         """The consider mask of a motion update: :attr:`consider`, the accelerometer's terms on a ``vehicle``
         (:attr:`consider_vehicle`) and, when the update holds no magnetometer (``mag_in`` False), the gyro's x/y
         scales (:attr:`gyro_tilt_terms`), and each sensor's whose geometry this block does not learn (cached)."""

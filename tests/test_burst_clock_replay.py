@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from closure import MARG, closure
 
 from onlinecal.batch.clock import ReclockedReader, is_burst_stamped, regularise_clock, regularise_for_filter
 from onlinecal.health import START_AGREEMENT_SIGMA, start_checks
@@ -20,7 +21,6 @@ from onlinecal.ukf import OnlineCalibrator, replay
 from onlinecal.ukf.layout import N_STATE
 from onlinecal.ukf.measurements import MagModel, misfit_of
 
-MARG = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "marg-set1"
 SHORT = MARG / "rotate-360ccw-around-x-pointing-forward.csv"  # 15.5 s, 1558 IMU samples, burst-stamped
 
 
@@ -133,19 +133,6 @@ def test_the_cross_check_names_a_term_beyond_both_sigma() -> None:
     assert start_checks(far, start, und, True) == ([], [])
 
 
-CLOSURE = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "gyro_closure.py"
-
-
-def _closure(cal: Path, logs: list[Path]) -> list[float]:
-    """The shared tool's out-of-fit check (integrated gyro against the accel + mag attitude at both ends)."""
-    import subprocess
-    import sys
-
-    p = subprocess.run([sys.executable, str(CLOSURE), str(cal), *map(str, logs)], capture_output=True, text=True,
-                       timeout=600, check=True)
-    return [float(line.rsplit("closure error", 1)[1].split()[0]) for line in p.stdout.splitlines()]
-
-
 @pytest.mark.slow
 def test_marg_set_online_gyro_from_its_batch_closes_the_turns_as_well_as_the_batch(tmp_path: Path) -> None:
     """All 15 MARG files, `onlinecal replay` with its default batch start, against the batch, out of fit
@@ -169,7 +156,7 @@ def test_marg_set_online_gyro_from_its_batch_closes_the_turns_as_well_as_the_bat
     online, batch = json.loads(out.read_text()), json.loads(bat.read_text())
     hyb.write_text(json.dumps({**batch, "gyro": online["gyro"]}))
     moving = [p for p in logs if not p.name.startswith("unmoved")]
-    got, ref = _closure(hyb, moving), _closure(bat, moving)
+    got, ref = closure(hyb, moving), closure(bat, moving)
     assert len(got) == 12
     assert all(o <= b + 1.0 for o, b in zip(got, ref, strict=True)), (got, ref)
     # the median within a degree of the batch's (session 16: 5.3° against 5.8°, its gyro bias an average over

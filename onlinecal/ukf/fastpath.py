@@ -653,11 +653,13 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
 
 def motion_consider(cal: OnlineCalibrator, mag_in: bool) -> NDArray[np.bool_]:
     """The consider mask of a motion update: the accelerometer's terms held too once a vehicle is detected
-    (:attr:`.state.StateLayout.consider_vehicle`) and, in an update without the magnetometer (``mag_in`` False), the
-    gyro's x/y scales (:attr:`.state.StateLayout.gyro_tilt_terms`), and each sensor's whose geometry this block does
-    not learn (:class:`.learning.Learning`, decided by :func:`.step.motion_step`)."""
+    (:attr:`.state.StateLayout.consider_vehicle`) and, on a vehicle detected by its vibration (thrust-borne) in an
+    update without the magnetometer (``mag_in`` False), the gyro's x/y scales
+    (:attr:`.state.StateLayout.gyro_tilt_terms`), and each sensor's whose geometry this block does not learn
+    (:class:`.learning.Learning`, decided by :func:`.step.motion_step`)."""
     ha, hm = cal._learn.held
-    return cal.lay.consider_mask(cal._vehicle.active, ha, hm, mag_in)
+    veh = cal._vehicle
+    return cal.lay.consider_mask(veh.active, ha, hm, veh.vibrating and not mag_in)
 
 
 def _field_dir(x: Array, m_mean: Array) -> tuple[float, float, float]:

@@ -89,15 +89,18 @@ class StateLayout:
         for e, sl in self.ext_slice.items():
             if EXTENSIONS[e][0] == "accel":
                 self.consider_vehicle[sl] = True
-        # ... and where the accelerometer is the update's only attitude reference (no magnetometer in it), the gyro's x
-        # and y scales too: a roll or pitch scale error tilts the integrated attitude in proportion to the bank or pitch
-        # itself, which is exactly the tilt of a coordinated turn's specific force (along body z at any bank) and of a
-        # multirotor's thrust tilted to accelerate, both of which the accelerometer reads as "level". Learned there,
-        # the scales were pulled low on every cold flight (session 20, 12 seeds: mean z of gyro.scale.x/y −2.1/−2.2
-        # fixed-wing, −1.1 multirotor; 0.68–0.92 for a truth of 1.14, "undetermined" at 0.7 of the prior σ); held,
-        # −0.8/−0.7, the prior's own offset. The z scale, which a turn tilts only through the body's tilt, showed no
-        # such pull (mean z +0.1, −0.1) and is learned; rests update all of them, the cross-covariance with the
-        # attitude kept through the motion (eq. 36's attitude change between rests)
+        # ... and on a thrust-borne vehicle (detected by its vibration) where the accelerometer is the update's only
+        # attitude reference (no magnetometer in it), the gyro's x and y scales too: a roll or pitch scale error
+        # tilts the integrated attitude in proportion to the bank or pitch itself, which is exactly the tilt of a
+        # coordinated turn's specific force (along body z at any bank) and of a multirotor's thrust tilted to
+        # accelerate, both of which the accelerometer reads as "level". Learned there, the scales were pulled low on
+        # every cold flight (session 20, 12 seeds: mean z of gyro.scale.x/y −2.1/−2.2 fixed-wing, −1.1 multirotor;
+        # 0.68–0.92 for a truth of 1.14, "undetermined" at 0.7 of the prior σ); held, −0.8/−0.7, the prior's own
+        # offset. The z scale, which a turn tilts only through the body's tilt, showed no such pull (mean z +0.1,
+        # −0.1) and is learned; rests update all of them, the cross-covariance with the attitude kept through the
+        # motion (eq. 36's attitude change between rests). Not for a hand (a vehicle by the gate's drops, no
+        # vibration): there the rests' updates through that cross-covariance took MARG's cold gyro.scale.y to
+        # 0.75 ± 0.16 (0.985 ± 0.057 learned in motion) and its y-turn closure from 34.6° to 171°
         self.gyro_tilt_terms = np.zeros(n, bool)
         for a in "xy":
             self.gyro_tilt_terms[names.index(f"gyro.scale.{a}")] = True
@@ -115,15 +118,16 @@ class StateLayout:
             self.learned_terms[s] = m
         self._masks: dict[tuple[bool, bool, bool, bool], NDArray[np.bool_]] = {}
 
-    def consider_mask(self, vehicle: bool, held_accel: bool, held_mag: bool, mag_in: bool) -> NDArray[np.bool_]:
+    def consider_mask(self, vehicle: bool, held_accel: bool, held_mag: bool, gyro_tilt: bool) -> NDArray[np.bool_]:
         """The consider mask of a motion update: :attr:`consider`, the accelerometer's terms on a ``vehicle``
-        (:attr:`consider_vehicle`) and, when the update holds no magnetometer (``mag_in`` False), the gyro's x/y
-        scales (:attr:`gyro_tilt_terms`), and each sensor's whose geometry this block does not learn (cached)."""
-        key = (vehicle, held_accel, held_mag, mag_in)
+        (:attr:`consider_vehicle`), the gyro's x/y scales where ``gyro_tilt`` (:attr:`gyro_tilt_terms`;
+        :func:`.fastpath.motion_consider` decides), and each sensor's whose geometry this block does not learn
+        (cached)."""
+        key = (vehicle, held_accel, held_mag, gyro_tilt)
         m = self._masks.get(key)
         if m is None:
             m = (self.consider_vehicle if vehicle else self.consider).copy()
-            if vehicle and not mag_in:
+            if gyro_tilt:
                 m |= self.gyro_tilt_terms
             if held_accel:
                 m |= self.learned_terms["accel"]

@@ -1,12 +1,13 @@
 """Bit-identity check of the online filter across code changes (issue 15's rounds: a speed change must keep the
-filter's arithmetic). Replays five logs and saves, or compares with a saved run, the final state x, covariance P,
+filter's arithmetic). Replays six logs and saves, or compares with a saved run, the final state x, covariance P,
 attitude R_nom, the events with their details, the NIS bookkeeping, the motion coverage (rates, angles, flight time,
 the field cells swept and the rests' gravity directions) and every trace row —
 ``np.array_equal``, NaN-aware, not a tolerance.
 
 The logs: a cold 120-s flight whose vehicle detector switches on, the 10-min benchmark flight
-(``bench_ukf.py``'s), a cold 200-s paper session (the magnetometer's cold start, hold offsets), a 90-s multirotor
-flight and an 80-s paper session with a magnetic disturbance started from the truth.
+(``bench_ukf.py``'s) cold and from its calibration (the magnetometer in use at every block), a cold 200-s
+paper session (the magnetometer's cold start, hold offsets), a 90-s multirotor flight and an 80-s paper
+session with a magnetic disturbance started from the truth.
 
     PYTHONPATH=. python benchmarks/bits_ukf.py save /tmp/before.pkl   # on the commit before
     PYTHONPATH=. python benchmarks/bits_ukf.py cmp /tmp/before.pkl    # on the change: exit 1 if any differs
@@ -40,9 +41,12 @@ from onlinecal.ukf import OnlineCalibrator, kernels  # noqa: E402
 
 
 def logs() -> Any:
-    """(name, data, init) of the five logs."""
+    """(name, data, init) of the six logs."""
     yield "flight120", simulate("flight", 3, duration=120, imu_rate=200).data, None
-    yield "flight600", simulate("flight", 0, duration=600, imu_rate=200).data, None
+    sim = simulate("flight", 0, duration=600, imu_rate=200)
+    yield "flight600", sim.data, None
+    # the same flight from its calibration: the magnetometer in use at every block (replay's default start)
+    yield "flight600warm", sim.data, sim.truth.calibration
     yield "paper200", simulate("paper", 1, duration=200).data, None
     yield "multirotor90", simulate("multirotor", 2, duration=90, imu_rate=200).data, None
     eff = MagDisturbance(start=55.0, duration=6.0, amplitude=0.5, direction=(1.0, 0.5, 0.0))

@@ -436,3 +436,72 @@ def test_rest_detector_on_python_floats_makes_the_numpy_decisions() -> None:
                    for x, y in zip(new.prev_means, ref.prev_means, strict=True))
         rests += r_new
     assert 100 < rests < nb - 100, rests
+
+
+def test_the_block_means_are_the_gates_means_to_rounding() -> None:
+    """The disturbance gate takes the block's mean mag and accel readings from :func:`.blocks.block_stats`
+    (``means``) instead of forming ``mean(axis=0)`` again. block_stats sums each segment with np.add.reduceat,
+    numpy's mean sums in its own order: the two agree to rounding (within the sums' rounding bound, checked on
+    blocks of 1–40 IMU samples and 0–9 mag samples of readings with large offsets), so the gate's verdict can
+    differ only for a field within ~1e-15 of its tolerance — and on 400 fields drawn around the tolerance (norm
+    and dip) the verdicts with and without ``means`` are the same."""
+    from onlinecal.ukf.blocks import block_stats
+
+    rng = np.random.default_rng(3)
+    N = 4000
+    t = 0.005 * np.arange(1, N + 1)
+    w = rng.normal(0.3, 1.0, (N, 3))
+    a = rng.normal(0.0, 0.4, (N, 3)) + [1e3 / 7, -9.81, 3.3e2]
+    tm = np.sort(rng.uniform(t[0], t[-1], 800))
+    m = rng.normal(0.0, 1.0, (800, 3)) * [1e-3, 0.37, 1e4] + [0.11, 412.3, -7e4]
+    bounds, i = [], 0
+    while i < N:
+        j = min(N, i + int(rng.integers(1, 41)))
+        bounds.append((i, j))
+        i = j
+    B = block_stats(t, w, a, tm, m, bounds, None, np.zeros(3), False)
+    n_mag, differ = set(), 0
+    for b, (i, j) in enumerate(bounds):
+        for got, seg in ((B.a_mean[b], a[i:j]), (B.m_mean[b], m[int(B.mlo[b]) : int(B.mhi[b])])):
+            if seg.shape[0] == 0:
+                continue
+            want = seg.mean(axis=0)
+            # both within the recursive sum's error bound, (n − 1) u Σ|a_i| / n, of the exact mean
+            bound = 2 * seg.shape[0] * np.finfo(float).eps * np.abs(seg).mean(axis=0)
+            assert np.all(np.abs(got - want) <= bound), (b, got - want)
+            differ += not np.array_equal(got, want)
+        n_mag.add(int(B.mhi[b] - B.mlo[b]))
+    assert {0, 1, 2, 5, 9} <= n_mag, n_mag
+    assert differ > 0  # (the orders of the sums do differ: the bound above is what holds)
+    # the gate's verdicts with and without ``means``, on fields around the norm tolerance and the dip's
+    x = np.zeros(N_STATE)
+    x[SENSOR_SLICE["mag"]] = np.r_[0.0, 0.0, 0.0, 1.0, 1.0, 1.0, np.zeros(6)]
+    x[SENSOR_SLICE["accel"]] = np.r_[np.zeros(3), np.ones(3), np.zeros(6)]
+    x[DIP] = math.radians(60.0)
+    sig = np.full(N_STATE, 1e-3)
+    seen = set()
+    for k in range(400):
+        norm = 1.0 + (md.NORM_MIN * rng.uniform(0.9, 1.1) if k % 2 else 0.0)
+        dip = x[DIP] + math.radians(md.DIP_MIN_DEG * rng.uniform(0.9, 1.1) * (k % 4 == 0))
+        mb = np.tile([0.0, norm * math.cos(dip), -norm * math.sin(dip)], (5, 1)) + rng.normal(0, 1e-3, (5, 3))
+        ab = np.tile([0.0, 0.0, 9.81], (20, 1)) + rng.normal(0, 1e-2, (20, 3))
+        g = md.MagDisturbanceGate()
+        why = g.judge(x, sig, mb, ab, 9.81)
+        assert why == g.judge(x, sig, mb, ab, 9.81, means=(mb.mean(axis=0), ab.mean(axis=0))), k
+        seen.add(None if why is None else why.split()[0])
+    assert seen == {None, "field", "dip"}, seen
+
+
+def test_sigma_is_the_clipped_square_root_bit_for_bit() -> None:
+    """OnlineCalibrator.sigma (np.maximum on the diagonal) against the np.clip form it replaced: the same bits,
+    with negative, zero, tiny and NaN variances."""
+    from onlinecal.ukf import OnlineCalibrator
+
+    cal = OnlineCalibrator(None)
+    rng = np.random.default_rng(8)
+    d = 10 ** rng.uniform(-30, 4, cal.n)
+    d[:4] = [-1e-20, 0.0, np.nan, -3.0]
+    cal.P = np.diag(d) + np.triu(rng.normal(0, 1e-9, (cal.n, cal.n)), 1)
+    want = np.sqrt(np.clip(np.diag(cal.P), 0.0, None))
+    assert np.array_equal(cal.sigma(), want, equal_nan=True)
+    assert np.isnan(cal.sigma()[2]) and cal.sigma()[0] == 0.0 and cal.sigma()[3] == 0.0

@@ -285,7 +285,9 @@ class OnlineCalibrator:
     # ------------------------------------------------------------------------------------------
     # results (:mod:`.outputs`)
     def sigma(self) -> Array:
-        out: Array = np.sqrt(np.clip(np.diag(self.P), 0.0, None))
+        """1σ (n,) of every state: √max(0, P_ii) (np.clip's ufunc without its Python wrapper: the same bits,
+        ~3 µs less per block that reads it)."""
+        out: Array = np.sqrt(np.maximum(self.P.diagonal(), 0.0))
         return out
 
     def result(self) -> Calibration:

@@ -155,7 +155,7 @@ class MagDisturbanceGate:
         self.active, self.armed, self.agreed_since = False, False, math.nan
 
     def judge(self, x: Array, sig: Array, m_raw: Array, a_raw: Array, gravity: float,
-              accel_is_gravity: bool = True) -> str | None:
+              accel_is_gravity: bool = True, means: tuple[Array, Array] | None = None) -> str | None:
         """Why the block's field disagrees with the model, or None. m_raw (N, 3), a_raw (K, 3) raw samples
         of the block; x, sig (n,) the state and its σ; ``gravity`` m/s². ``accel_is_gravity`` False (a
         vehicle in motion, :mod:`.vehicle`): the dip is not judged, since a specific force of norm g can
@@ -164,10 +164,14 @@ class MagDisturbanceGate:
 
         The arithmetic of :func:`calibrated`, :func:`norm_sigma` and :func:`dip_of` on Python floats
         (:func:`calibrated_floats`; issue 15: numpy's calls on 3-vectors were 18 % of a paper session's replay);
-        it agrees with them to rounding (tests/test_speed_detectors.py)."""
+        it agrees with them to rounding (tests/test_speed_detectors.py). ``means``: the block's mean mag and
+        accel readings (3,) each where the caller has them (:class:`.blocks.Blocks`' m_mean, a_mean: summed by
+        np.add.reduceat, ``mean(axis=0)``'s value to the sums' rounding — only a field within ~1e-15
+        of a tolerance could be judged otherwise), instead of forming them again (~6 µs a block)."""
         sl, sa = SENSOR_SLICE["mag"], SENSOR_SLICE["accel"]
         pm = x[sl].tolist()
-        h = calibrated_floats(pm, m_raw.mean(axis=0).tolist())
+        m_mean, a_mean = means if means is not None else (m_raw.mean(axis=0), None)
+        h = calibrated_floats(pm, m_mean.tolist())
         nh = math.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
         dev = nh - 1.0
         # norm_sigma: δ‖h‖ = ĥ·(M δ(m − o)), M ≈ diag(scale)
@@ -182,7 +186,7 @@ class MagDisturbanceGate:
             return f"field norm {1 + dev:.2f} of the model's 1 (tolerance ±{tol:.2f})"
         if not accel_is_gravity:
             return None
-        f = calibrated_floats(x[sa].tolist(), a_raw.mean(axis=0).tolist())
+        f = calibrated_floats(x[sa].tolist(), (a_raw.mean(axis=0) if a_mean is None else a_mean).tolist())
         nf = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
         if abs(nf / gravity - 1.0) < STATIC_G:
             c = (h[0] * f[0] + h[1] * f[1] + h[2] * f[2]) / max(nh * nf, 1e-12)
@@ -195,11 +199,11 @@ class MagDisturbanceGate:
 
     def gate(self, use_mag: bool, x: Array, sig: Array, m_raw: Array, a_raw: Array, t: float, gravity: float,
              event: Callable[[str, str, float], None], in_order: bool = True,
-             accel_is_gravity: bool = True) -> bool:
+             accel_is_gravity: bool = True, means: tuple[Array, Array] | None = None) -> bool:
         """``use_mag`` unless the block lies in a disturbance; the events through ``event(kind, detail, t)``
         at log time t s. Nothing is judged while the magnetometer is not used (cold, or no sample).
         ``in_order`` (:func:`nis_in_order`): False disarms the gate (and ends a running stretch: the filter's
-        own NIS disagree, the disagreement is not the magnetometer's alone)."""
+        own NIS disagree, the disagreement is not the magnetometer's alone). ``means``: as :meth:`judge`'s."""
         if not in_order:
             if self.active:
                 event("mag_disturbance", f"magnetometer disturbance left to the filter: t = {self.since:.1f}–"
@@ -209,7 +213,7 @@ class MagDisturbanceGate:
             return use_mag
         if not use_mag or m_raw.shape[0] == 0:
             return use_mag and not self.active
-        why = self.judge(x, sig, m_raw, a_raw, gravity, accel_is_gravity)
+        why = self.judge(x, sig, m_raw, a_raw, gravity, accel_is_gravity, means)
         fresh, self.log_fresh = self.log_fresh, False
         if why is None:
             if math.isnan(self.agreed_since):

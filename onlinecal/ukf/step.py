@@ -61,7 +61,7 @@ def step(cal: OnlineCalibrator, B: Blocks, b: int, t_all: Array, a_all: Array, T
     sig = cal.sigma() if use_mag and mh > ml else _UNJUDGED
     use_mag = cal._magd.gate(use_mag, cal.x, sig, m_all[ml:mh], a, tl, c.gravity, cal._event,
                              nis_in_order(cal._nis.stats, cal._nis.band()[1]),  # a magnetic disturbance
-                             accel_is_gravity=not cal._vehicle.active)
+                             accel_is_gravity=not cal._vehicle.active, means=(B.m_mean[b], B.a_mean[b]))
     spec = cal._spec_noise()
     q = cal._lat.q or {}
     turn = turning(cal, B, b)

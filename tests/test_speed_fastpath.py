@@ -578,7 +578,9 @@ def test_the_field_coverage_of_one_block_equals_the_general_form() -> None:
     for up to 2L + 2 samples a block) and its field coverage: the block's mean field calibrated on Python floats
     (fastpath._field_dir) against start.calibrated's numpy (eq. 1) within 1e-13 relative, over states with
     the paper's magnitudes of scale, angles and bias; and MotionCoverage.add_field_one marking the same cell
-    as add_field for 20 000 directions of any length, a zero and a NaN vector included."""
+    as add_field for 20 000 directions of any length, a zero and a NaN vector included. The compiled forms
+    motion_kernel uses (fastpath.interp_weights_kernel, fastpath.field_cell_kernel): the same weights bit for bit,
+    the same cells."""
     import warnings
 
     from onlinecal.ukf.layout import SENSOR_SLICE
@@ -602,7 +604,29 @@ def test_the_field_coverage_of_one_block_equals_the_general_form() -> None:
             m = int(rng.integers(1, 2 * L + 3))
             j = np.sort(rng.integers(1, L + 1, m))
             frac = rng.random(m)
-            assert np.array_equal(interp_weights_floats(j.tolist(), frac.tolist(), L), interp_weights(j, frac, L))
+            want = interp_weights(j, frac, L)
+            assert np.array_equal(interp_weights_floats(j.tolist(), frac.tolist(), L), want)
+            # compiled inside motion_kernel since session 21: the same bits again
+            assert np.array_equal(fastpath.interp_weights_kernel(j.astype(np.intp), frac, L), want)
+    with pytest.raises(ZeroDivisionError):  # (no mag sample: as the Python, never a silent NaN)
+        fastpath.interp_weights_kernel(np.zeros(0, np.intp), np.zeros(0), 20)
+    # the field's cell in motion_kernel: calibrated_floats then add_field_one's cell, compiled — the same cell on
+    # states with the paper's magnitudes and on raw readings of any size, a NaN reading included (cell 0)
+    from onlinecal.ukf.magdisturb import calibrated_floats
+    from onlinecal.ukf.vehicle import _CELLS
+
+    seen = set()
+    for k in range(5000):
+        p = np.concatenate([rng.normal(0, 0.3, 3), rng.uniform(0.5, 3.0, 3), rng.normal(0, 0.05, 6)])
+        raw = rng.normal(0, 1.0, 3) * 10 ** rng.uniform(-3, 3)
+        if k == 0:
+            raw[1] = np.nan
+        cov = MotionCoverage()
+        cov.add_field_one(calibrated_floats(p.tolist(), raw.tolist()))
+        cell = fastpath.field_cell_kernel(p, raw, _CELLS)
+        assert cov.mag_dirs[cell] == 1.0 and cov.mag_dirs.sum() == 1.0, (k, cell)
+        seen.add(cell)
+    assert len(seen) == 26
     H = rng.normal(size=(20000, 3)) * rng.uniform(1e-3, 10.0, (20000, 1))
     H = np.vstack([H, np.zeros(3), [np.nan, 1.0, 0.0]])
     with warnings.catch_warnings():

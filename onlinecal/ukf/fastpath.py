@@ -56,6 +56,7 @@ from .layout import DIP, SENSOR_SLICE
 from .magdisturb import calibrated_floats
 from .propagate import interp_weights_floats
 from .unscented import UpdateResult
+from .vehicle import _CELLS
 
 if TYPE_CHECKING:
     from .blocks import Blocks
@@ -67,6 +68,8 @@ Array = NDArray[np.float64]
 _enabled = os.environ.get("ONLINECAL_FASTPATH", "1").strip() not in ("0", "false", "no", "off")
 _G0, _A0, _M0 = SENSOR_SLICE["gyro"].start, SENSOR_SLICE["accel"].start, SENSOR_SLICE["mag"].start
 _EMPTY1 = np.zeros(1)
+_EMPTY0 = np.zeros(0)
+_EMPTY_I = np.zeros(0, dtype=np.intp)
 
 
 def enabled() -> bool:
@@ -371,25 +374,73 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
 
 
 @_njit
+def interp_weights_kernel(j: NDArray[np.intp], frac: Array, L: int) -> Array:
+    """:func:`.propagate.interp_weights_floats` compiled (the same sums in the same order, the same division: the
+    same bits): c (L + 1,) from the mag samples' interpolation indices j (M,) in 1..L and fractions frac (M,);
+    M = 0 raises ZeroDivisionError, as the Python does."""
+    a = np.zeros(L + 1)
+    b = np.zeros(L + 1)
+    for k in range(j.shape[0]):
+        a[j[k]] += frac[k]
+        b[j[k] - 1] += 1.0 - frac[k]
+    n = j.shape[0]
+    c = np.empty(L + 1)
+    for k in range(L + 1):
+        c[k] = (a[k] + b[k]) / n
+    return c
+
+
+@_njit
+def field_cell_kernel(p: Array, raw: Array, cells: Array) -> int:
+    """The coverage cell of a block's mean field: :func:`.magdisturb.calibrated_floats` of raw (3,) with the mag's
+    12 terms p, then :meth:`.vehicle.MotionCoverage.add_field_one`'s cell (the first of the largest dot products
+    with the 26 unit directions ``cells`` (26, 3); NaN: cell 0) — the same operations in the same order as the
+    Python (tests/test_speed_fastpath.py: the same cells)."""
+    v0, v1, v2 = raw[0] - p[0], raw[1] - p[1], raw[2] - p[2]
+    cf, sf, ct, st = math.cos(p[6]), math.sin(p[6]), math.cos(p[7]), math.sin(p[7])
+    cp, sp = math.cos(p[8]), math.sin(p[8])
+    sx, sy, sz = math.sin(p[9]), math.sin(p[10]), math.sin(p[11])
+    cx, cy, cz = math.cos(p[9]), math.cos(p[10]), math.cos(p[11])
+    b, c, d, e, f = sz, cz, -sy, sx * cy, cx * cy
+    w0 = v0
+    w1 = -b / c * v0 + v1 / c
+    w2 = (b * e - c * d) / (c * f) * v0 - e / (c * f) * v1 + v2 / f
+    r0 = cp * ct * w0 + (cp * st * sf - sp * cf) * w1 + (cp * st * cf + sp * sf) * w2
+    r1 = sp * ct * w0 + (sp * st * sf + cp * cf) * w1 + (sp * st * cf - cp * sf) * w2
+    r2 = -st * w0 + ct * sf * w1 + ct * cf * w2
+    h0, h1, h2 = p[3] * r0, p[4] * r1, p[5] * r2
+    best, k_best = -math.inf, 0
+    for k in range(cells.shape[0]):
+        v = cells[k, 0] * h0 + cells[k, 1] * h1 + cells[k, 2] * h2
+        if v > best:
+            best, k_best = v, k
+    return k_best
+
+
+@_njit
 def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_nom: Array, w: Array, dt: Array,
-                  c_mag: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array, rw: Array, rate: float,
+                  m_j: NDArray[np.intp], m_frac: Array, has_mag: bool, dyn: NDArray[np.intp], Wm: Array, Wc: Array,
+                  rw: Array, rate: float,
                   sigma_gyr: float, mag_q: bool, mag_dens: float, field_gauss: float, rw_factor: float,
                   earth: bool, sigma_rest: Array, tau: float, om2: float, q_att_jerk: float, dt_blk: float,
                   w_mean: Array, a_mean: Array, sig_mean: float, gravity: float,
                   g0: int, a0: int, m0: int, dip_col: int, dev_bail: float, use_acc: bool, dev_gain: float,
                   lever_m: float, var_v: float, z_mag: Array, var_mag: float, hold_acc: int, hold_mag: int,
                   gates: Array, consider: NDArray[np.bool_], damp: float, yaw_var: float, max_rate: Array,
-                  angle: Array, two: float) -> tuple[Any, ...]:
+                  angle: Array, two: float, mag_dirs: Array, cells: Array) -> tuple[Any, ...]:
     """One ordinary motion block in one call: :func:`predict_kernel`, the accel's quasi-static R
     (:meth:`.measurements.AccelModel.variance`'s terms, with the vehicle's ``var_v`` — an input: Python decides
     it), the motion coverage (:meth:`.vehicle.MotionCoverage.add_motion`'s maxima and turned angles, in place
-    in max_rate (3,) and angle (3,) rad/s, rad), then :func:`update_fold_kernel`.
+    in max_rate (3,) and angle (3,) rad/s, rad), then :func:`update_fold_kernel`; with the magnetometer, the
+    field's coverage cell marked in mag_dirs (26,) (:func:`field_cell_kernel` on the state before the update,
+    ``cells`` (26, 3)) once the update is reached.
 
-    Arguments as the two kernels'; ``dev_bail`` m/s²: a specific-force deviation above it is an event Python
-    must see before the update (the vehicle detector switching on, which changes var_v): the call then
-    stops after the prediction. ``two`` = 2.0, passed at run time so that the squares are libm's ``pow``
-    as in the Python they replace (a constant exponent compiles to x·x, which differs in the last bit for
-    about one value in a thousand).
+    Arguments as the two kernels', but the mag's interpolation weights: the block's mag samples' indices m_j (M,)
+    and fractions m_frac (M,) (:func:`interp_weights_kernel`; empty without the magnetometer); ``dev_bail``
+    m/s²: a specific-force deviation above it is an event Python must see before the update (the vehicle
+    detector switching on, which changes var_v): the call then stops after the prediction. ``two`` = 2.0,
+    passed at run time so that the squares are libm's ``pow`` as in the Python they replace (a constant
+    exponent compiles to x·x, which differs in the last bit for about one value in a thousand).
 
     Returns (stage: 0 P not positive definite, 1 stopped after the prediction, 2 done; the prediction
     (X, x_pred, Y, P_pred, f_body, h_body, sens_o, sens_Minv, ω of the mean (3,): None at stage 2); Rs (2, 3, 3):
@@ -399,6 +450,7 @@ def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_n
     (None, not placeholder arrays, and the small results in two arrays: each array returned costs its
     allocation and boxing, ~1.3 µs.)
     """
+    c_mag = interp_weights_kernel(m_j, m_frac, dt.shape[0]) if has_mag else np.zeros(1)
     ok, X, x_pred, Y, P_pred, R0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
         x, P, scale, order, R_nom, w, dt, c_mag, has_mag, dyn, Wm, Wc, rw, rate, sigma_gyr, mag_q, mag_dens,
         field_gauss, rw_factor, earth, sigma_rest, tau, om2, two, q_att_jerk, dt_blk, w_mean, a_mean, sig_mean,
@@ -412,6 +464,8 @@ def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_n
     if not ok or dev > dev_bail:
         return (1 if ok else 0, X, x_pred, Y, P_pred, f_body, h_body, s_o, s_Mi, om, Rs, info, None, None)
     rate = math.sqrt(np.dot(om, om))  # (BLAS ddot, as np.dot in Python: the same bits)
+    if has_mag:  # MotionCoverage.add_field_one of the block's field, calibrated with the state before the update
+        mag_dirs[field_cell_kernel(x[m0 : m0 + 12], z_mag, cells)] = 1.0
     for i in range(3):  # MotionCoverage.add_motion: np.maximum (NaN wins), ∫|ω_i| dt
         r = abs(om[i])
         m = max_rate[i]
@@ -570,10 +624,10 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     i, j = B.lo_l[b], B.hi_l[b]
     L = j - i
     has_mag = bool(use_mag)
-    c_mag = _EMPTY1
+    m_j, m_frac = _EMPTY_I, _EMPTY0
     if has_mag:
         k0, n_m0 = B.mlo_l[b] - B.mlo_l[0], B.mhi_l[b] - B.mlo_l[b]
-        c_mag = interp_weights_floats(B.m_j[k0 : k0 + n_m0].tolist(), B.m_frac[k0 : k0 + n_m0].tolist(), L)
+        m_j, m_frac = B.m_j[k0 : k0 + n_m0], B.m_frac[k0 : k0 + n_m0]
     t_last = cal._t_last
     assert t_last is not None  # (a motion step follows a filtered block)
     dt_blk = tl - t_last  # (the numpy subtraction's double)
@@ -598,12 +652,13 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
         feed = c.vehicle == "auto" and not veh.active  # (vehicle_accel_from_dev feeds the detector then)
         cov = cal._coverage
         stage, X, x_pred, Y, P_pred, f_body, h_body, s_o, s_Mi, om, Rs, info, x, P = motion_kernel(
-            cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
+            cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], m_j, m_frac, has_mag,
             lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, np.asarray(cal._earth[0]),
             c.vehicle_accel_tau, cal._earth[1], jerk, dt_blk, B.w_mean[b], a_mean, sig_mean, c.gravity,
             _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
             mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates,
-            motion_consider(cal, has_mag), float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO)
+            motion_consider(cal, has_mag), float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO,
+            cov.mag_dirs, _CELLS)
         if stage == 0:
             cal._diverged("covariance is not positive definite", tl)
             return
@@ -614,14 +669,13 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
                 # depended on the prediction would break the one call: tests/test_speed_fastpath.py compares it
                 # with the two calls bit for bit on a flight whose detector switches on)
                 st.vehicle_accel_from_dev(cal, dev, dt_blk, tl)
-            if veh.active:  # (MotionCoverage.add_motion's flight time; its maxima and angles in the kernel)
+            if veh.active:  # (MotionCoverage.add_motion's flight time; its maxima, angles and field cell in the kernel)
                 cov.flight_s += dt_blk
-            if use_mag:
-                cov.add_field_one(_field_dir(cal.x, B.m_mean[b]))
             _finish_motion(cal, st, x, P, [nis0, nis1], [st0, st1], solved == 1.0, Rs[1], fine == 1.0, use_acc,
                            has_mag, var_v, tl)
             return
     else:
+        c_mag = (interp_weights_floats(m_j.tolist(), m_frac.tolist(), L) if has_mag else _EMPTY1)
         ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
             cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
             lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, np.asarray(cal._earth[0]),

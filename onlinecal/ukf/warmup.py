@@ -28,7 +28,7 @@ worker that errs or dies, a plan that no longer matches the code, a timeout) onl
 process compiles what is missing itself, as it always did; :attr:`Warmup.report` says what happened.
 
 Cost: two more Python processes for ~35 s on a first run, each with numba and LLVM loaded (~0.25 GB of memory
-each while it compiles, measured); none on a warm cache (a look at seven index files, ~10 ms).
+each while it compiles, measured); none on a warm cache (a look at nine index files, ~10 ms).
 """
 
 from __future__ import annotations
@@ -54,8 +54,10 @@ from . import kernels
 SIGNATURES: dict[str, str] = {
     "fastpath:predict_kernel": "A1 A2 f I1 A2 A2 A1 A1 b I1 A1 A1 A1 f f b f f f b A1 f f f f f A1 A1 f f i i i i",
     "fastpath:update_fold_kernel": "A2 A2 A1 A2 A2 A2 A2 A3 A1 b f A1 b f i i f A1 A1 A1 B1 f A2 f",
-    "fastpath:motion_kernel": "A1 A2 f I1 A2 A2 A1 A1 b I1 A1 A1 A1 f f b f f f b A1 f f f f A1 A1 f f i i i i f b "
-                              "f f f A1 f i i A1 B1 f f A1 A1 f",
+    "fastpath:motion_kernel": "A1 A2 f I1 A2 A2 A1 I1 A1 b I1 A1 A1 A1 f f b f f f b A1 f f f f A1 A1 f f i i i i f "
+                              "b f f f A1 f i i A1 B1 f f A1 A1 f A1 A2",
+    "fastpath:interp_weights_kernel": "I1 A1 i",
+    "fastpath:field_cell_kernel": "A1 A1 A2",
     "fastpath:rest_update_kernel": "A1 A2 f I1 A2 A1 A1 b A1 f b A1 f A1 A1 i i i f f A1 B1 f i i i i",
     "kernels_detectors:rail_pass_kernel": "A2 I3 A2 A2 I1 A1 b A1 I1 b b f i",
     "blocks:_seg_median_kernel": "A1 B1 I1 i i A1",
@@ -65,7 +67,8 @@ SIGNATURES: dict[str, str] = {
 # stages of jobs (a job: kernels compiled in that order by one worker); see the module's docstring
 PLAN: tuple[tuple[tuple[str, ...], ...], ...] = (
     (("fastpath:predict_kernel", "kernels_detectors:rail_pass_kernel", "blocks:_seg_median_kernel"),
-     ("fastpath:update_fold_kernel", "kernels_magfit:mag_fit_figures")),
+     ("fastpath:update_fold_kernel", "kernels_magfit:mag_fit_figures", "fastpath:interp_weights_kernel",
+      "fastpath:field_cell_kernel")),
     (("fastpath:motion_kernel",), ("fastpath:rest_update_kernel",)),
 )
 

@@ -574,65 +574,48 @@ def test_a_warm_up_s_bias_walk_reaches_the_fast_motion_step() -> None:
 
 
 def test_the_field_coverage_of_one_block_equals_the_general_form() -> None:
-    """The fast path's magnetometer weights (propagate.interp_weights_floats: the same bits as interp_weights
-    for up to 2L + 2 samples a block) and its field coverage: the block's mean field calibrated on Python floats
-    (fastpath._field_dir) against start.calibrated's numpy (eq. 1) within 1e-13 relative, over states with
-    the paper's magnitudes of scale, angles and bias; and MotionCoverage.add_field_one marking the same cell
-    as add_field for 20 000 directions of any length, a zero and a NaN vector included. The compiled forms
-    motion_kernel uses (fastpath.interp_weights_kernel, fastpath.field_cell_kernel): the same weights bit for bit,
-    the same cells."""
+    """The fast path's magnetometer weights (fastpath.interp_weights_kernel: the same bits as interp_weights for up
+    to 2L + 2 samples a block) and its field coverage (fastpath.field_cell_kernel): the block's mean field
+    calibrated on scalars (magdisturb.calibrated_floats, compiled into the kernel) against start.calibrated's numpy
+    (eq. 1) within 1e-13 relative, and the cell it marks the one MotionCoverage.add_field marks for that numpy
+    field, over 5000 states with the paper's magnitudes of scale, angles and bias and readings of any size, a NaN
+    reading included (cell 0); every cell occurs."""
     import warnings
 
     from onlinecal.ukf.layout import SENSOR_SLICE
+    from onlinecal.ukf.magdisturb import calibrated_floats
+    from onlinecal.ukf.propagate import interp_weights
     from onlinecal.ukf.start import calibrated
-    from onlinecal.ukf.vehicle import MotionCoverage
+    from onlinecal.ukf.vehicle import _CELLS, MotionCoverage
 
     rng = np.random.default_rng(11)
     cal = OnlineCalibrator(None)
     sl = SENSOR_SLICE["mag"]
-    for _ in range(200):
+    seen = set()
+    for k in range(5000):
         x = cal.x.copy()
         x[sl] = np.concatenate([rng.normal(0, 0.3, 3), rng.uniform(0.5, 3.0, 3), rng.normal(0, 0.05, 6)])
         cal.x = x
-        m = rng.normal(0, 0.5, 3)
-        ref = calibrated(cal, "mag", m)
-        assert np.allclose(fastpath._field_dir(x, m), ref, rtol=1e-13, atol=1e-13 * float(np.linalg.norm(ref)))
-    from onlinecal.ukf.propagate import interp_weights, interp_weights_floats
-
-    for L in (1, 5, 20, 40):  # the mag's interpolation weights on Python numbers: the same bits
-        for _ in range(100):
-            m = int(rng.integers(1, 2 * L + 3))
-            j = np.sort(rng.integers(1, L + 1, m))
-            frac = rng.random(m)
-            want = interp_weights(j, frac, L)
-            assert np.array_equal(interp_weights_floats(j.tolist(), frac.tolist(), L), want)
-            # compiled inside motion_kernel since session 21: the same bits again
-            assert np.array_equal(fastpath.interp_weights_kernel(j.astype(np.intp), frac, L), want)
-    with pytest.raises(ZeroDivisionError):  # (no mag sample: as the Python, never a silent NaN)
-        fastpath.interp_weights_kernel(np.zeros(0, np.intp), np.zeros(0), 20)
-    # the field's cell in motion_kernel: calibrated_floats then add_field_one's cell, compiled — the same cell on
-    # states with the paper's magnitudes and on raw readings of any size, a NaN reading included (cell 0)
-    from onlinecal.ukf.magdisturb import calibrated_floats
-    from onlinecal.ukf.vehicle import _CELLS
-
-    seen = set()
-    for k in range(5000):
-        p = np.concatenate([rng.normal(0, 0.3, 3), rng.uniform(0.5, 3.0, 3), rng.normal(0, 0.05, 6)])
-        raw = rng.normal(0, 1.0, 3) * 10 ** rng.uniform(-3, 3)
+        m = rng.normal(0, 1.0, 3) * 10 ** rng.uniform(-3, 3)
         if k == 0:
-            raw[1] = np.nan
+            m[1] = np.nan
+        ref = calibrated(cal, "mag", m)
+        if k:
+            got = calibrated_floats(x[sl].tolist(), m.tolist())
+            assert np.allclose(got, ref, rtol=1e-13, atol=1e-13 * float(np.linalg.norm(ref)))
         cov = MotionCoverage()
-        cov.add_field_one(calibrated_floats(p.tolist(), raw.tolist()))
-        cell = fastpath.field_cell_kernel(p, raw, _CELLS)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # (add_field's division of the NaN field)
+            cov.add_field(ref)
+        cell = fastpath.field_cell_kernel(x[sl].copy(), m, _CELLS)
         assert cov.mag_dirs[cell] == 1.0 and cov.mag_dirs.sum() == 1.0, (k, cell)
         seen.add(cell)
     assert len(seen) == 26
-    H = rng.normal(size=(20000, 3)) * rng.uniform(1e-3, 10.0, (20000, 1))
-    H = np.vstack([H, np.zeros(3), [np.nan, 1.0, 0.0]])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # (add_field's 0/0 on the zero vector)
-        for h in H:
-            a, b = MotionCoverage(), MotionCoverage()
-            a.add_field(h)
-            b.add_field_one(h)
-            assert np.array_equal(a.mag_dirs, b.mag_dirs), h
+    for L in (1, 5, 20, 40):  # the mag's interpolation weights, compiled: the same bits
+        for _ in range(100):
+            n_m = int(rng.integers(1, 2 * L + 3))
+            j = np.sort(rng.integers(1, L + 1, n_m)).astype(np.intp)
+            frac = rng.random(n_m)
+            assert np.array_equal(fastpath.interp_weights_kernel(j, frac, L), interp_weights(j, frac, L))
+    with pytest.raises(ZeroDivisionError):  # (no mag sample: an error, as the Python's, never a silent NaN)
+        fastpath.interp_weights_kernel(np.zeros(0, np.intp), np.zeros(0), 20)

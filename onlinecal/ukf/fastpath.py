@@ -54,7 +54,6 @@ from .kernels_unscented import _STATUS, _identity
 from .kernels_update import sigma_points_kernel, unscented_motion_kernel, update_kernel
 from .layout import DIP, SENSOR_SLICE
 from .magdisturb import calibrated_floats
-from .propagate import interp_weights_floats
 from .unscented import UpdateResult
 from .vehicle import _CELLS
 
@@ -375,9 +374,10 @@ def update_fold_kernel(X: Array, Y: Array, x_pred: Array, P_pred: Array, f_body:
 
 @_njit
 def interp_weights_kernel(j: NDArray[np.intp], frac: Array, L: int) -> Array:
-    """:func:`.propagate.interp_weights_floats` compiled (the same sums in the same order, the same division: the
-    same bits): c (L + 1,) from the mag samples' interpolation indices j (M,) in 1..L and fractions frac (M,);
-    M = 0 raises ZeroDivisionError, as the Python does."""
+    """:func:`.propagate.interp_weights` of one block's few mag samples, compiled (issue 15: its two ``bincount``
+    calls were ~8 µs a block): c (L + 1,) from the interpolation indices j (M,) in 1..L and fractions frac (M,) —
+    the same sums in the same order (``bincount`` adds each sample's weight in turn to 0.0) and the same
+    division, so the same bits (tests/test_speed_fastpath.py); M = 0 raises ZeroDivisionError, never a silent NaN."""
     a = np.zeros(L + 1)
     b = np.zeros(L + 1)
     for k in range(j.shape[0]):
@@ -390,25 +390,18 @@ def interp_weights_kernel(j: NDArray[np.intp], frac: Array, L: int) -> Array:
     return c
 
 
+_calibrated_nb = _njit(calibrated_floats)  # eq. 1 on scalars, written once (.magdisturb), compiled for the kernels
+
+
 @_njit
 def field_cell_kernel(p: Array, raw: Array, cells: Array) -> int:
-    """The coverage cell of a block's mean field: :func:`.magdisturb.calibrated_floats` of raw (3,) with the mag's
-    12 terms p, then :meth:`.vehicle.MotionCoverage.add_field_one`'s cell (the first of the largest dot products
-    with the 26 unit directions ``cells`` (26, 3); NaN: cell 0) — the same operations in the same order as the
-    Python (tests/test_speed_fastpath.py: the same cells)."""
-    v0, v1, v2 = raw[0] - p[0], raw[1] - p[1], raw[2] - p[2]
-    cf, sf, ct, st = math.cos(p[6]), math.sin(p[6]), math.cos(p[7]), math.sin(p[7])
-    cp, sp = math.cos(p[8]), math.sin(p[8])
-    sx, sy, sz = math.sin(p[9]), math.sin(p[10]), math.sin(p[11])
-    cx, cy, cz = math.cos(p[9]), math.cos(p[10]), math.cos(p[11])
-    b, c, d, e, f = sz, cz, -sy, sx * cy, cx * cy
-    w0 = v0
-    w1 = -b / c * v0 + v1 / c
-    w2 = (b * e - c * d) / (c * f) * v0 - e / (c * f) * v1 + v2 / f
-    r0 = cp * ct * w0 + (cp * st * sf - sp * cf) * w1 + (cp * st * cf + sp * sf) * w2
-    r1 = sp * ct * w0 + (sp * st * sf + cp * cf) * w1 + (sp * st * cf - cp * sf) * w2
-    r2 = -st * w0 + ct * sf * w1 + ct * cf * w2
-    h0, h1, h2 = p[3] * r0, p[4] * r1, p[5] * r2
+    """The field coverage's cell of a block's mean mag reading raw (3,) (:meth:`.vehicle.MotionCoverage.add_field`,
+    which of the 26 unit directions ``cells`` (26, 3) it points into): calibrated with the mag's 12 terms p
+    (:func:`.magdisturb.calibrated_floats`, compiled) instead of :func:`.start.calibrated`'s numpy on one row
+    (~40 µs a motion block with the mag), then the first of the largest dot products (the cell of the largest
+    cosine: a positive factor does not move the argmax; NaN never wins: cell 0, as add_field's division). The
+    same field to rounding: only a direction within ~1e-16 of a cell boundary could fall into another cell."""
+    h0, h1, h2 = _calibrated_nb(p, raw)
     best, k_best = -math.inf, 0
     for k in range(cells.shape[0]):
         v = cells[k, 0] * h0 + cells[k, 1] * h1 + cells[k, 2] * h2
@@ -464,7 +457,7 @@ def motion_kernel(x: Array, P: Array, scale: float, order: NDArray[np.intp], R_n
     if not ok or dev > dev_bail:
         return (1 if ok else 0, X, x_pred, Y, P_pred, f_body, h_body, s_o, s_Mi, om, Rs, info, None, None)
     rate = math.sqrt(np.dot(om, om))  # (BLAS ddot, as np.dot in Python: the same bits)
-    if has_mag:  # MotionCoverage.add_field_one of the block's field, calibrated with the state before the update
+    if has_mag:  # the field coverage of the block's mean field, calibrated with the state before the update
         mag_dirs[field_cell_kernel(x[m0 : m0 + 12], z_mag, cells)] = 1.0
     for i in range(3):  # MotionCoverage.add_motion: np.maximum (NaN wins), ∫|ω_i| dt
         r = abs(om[i])
@@ -675,7 +668,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
                            has_mag, var_v, tl)
             return
     else:
-        c_mag = (interp_weights_floats(m_j.tolist(), m_frac.tolist(), L) if has_mag else _EMPTY1)
+        c_mag = interp_weights_kernel(m_j, m_frac, L) if has_mag else _EMPTY1
         ok, X, x_pred, Y, P_pred, R_end0, f_body, h_body, s_o, s_Mi, om, dev = predict_kernel(
             cal.x, cal.P, scale, order, cal.R_nom, B.w_ext[i : j + 1], B.dt[i:j], c_mag, has_mag,
             lay.dyn_pts, cal._Wm, cal._Wc, rw, cal._rate or 100.0, s_g, *q_args, veh.active, np.asarray(cal._earth[0]),
@@ -690,7 +683,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     var_v = st.vehicle_accel_from_dev(cal, dev, dt_blk, tl)
     cal._coverage.add_motion(om, dt_blk, veh.active)
     if use_mag:
-        cal._coverage.add_field_one(_field_dir(cal.x, B.m_mean[b]))
+        cal._coverage.mag_dirs[field_cell_kernel(cal.x[_M0 : _M0 + 12], B.m_mean[b], _CELLS)] = 1.0
     var_a = 0.0
     if use_acc:
         g = mod.gravity
@@ -714,15 +707,6 @@ def motion_consider(cal: OnlineCalibrator, mag_in: bool) -> NDArray[np.bool_]:
     ha, hm = cal._learn.held
     veh = cal._vehicle
     return cal.lay.consider_mask(veh.active, ha, hm, veh.vibrating and not mag_in)
-
-
-def _field_dir(x: Array, m_mean: Array) -> tuple[float, float, float]:
-    """The block's mean mag reading m_mean (3,) raw, calibrated with the state x (n,), for the field coverage
-    (:meth:`.vehicle.MotionCoverage.add_field`: which of 26 cells it points into): eq. 1 on Python floats
-    (:func:`.magdisturb.calibrated_floats`) instead of :func:`.start.calibrated`'s numpy on one row (~40 µs a motion
-    block with the mag, the largest per-block Python of a replay started from a calibration). The same value to
-    rounding; only a direction within ~1e-16 of a cell boundary could fall into the other cell."""
-    return calibrated_floats(x[_M0 : _M0 + 12].tolist(), m_mean.tolist())
 
 
 def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: list[float], codes: list[Any],

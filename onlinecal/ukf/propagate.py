@@ -89,19 +89,6 @@ def interp_weights(j: NDArray[Any], frac: Array, L: int) -> Array:
     return c / j.shape[0]
 
 
-def interp_weights_floats(j: list[int], frac: list[float], L: int) -> Array:
-    """:func:`interp_weights` of one block's few mag samples on Python numbers (issue 15: its two ``bincount``
-    calls were ~8 µs a block): the same sums in the same order — ``bincount`` adds each sample's weight in
-    turn to 0.0 — and the same division, so the same bits (tests/test_speed_fastpath.py)."""
-    a = [0.0] * (L + 1)
-    b = [0.0] * (L + 1)
-    for jj, f in zip(j, frac, strict=True):
-        a[jj] += f
-        b[jj - 1] += 1.0 - f
-    n = len(j)
-    return np.array([(u + v) / n for u, v in zip(a, b, strict=True)])
-
-
 def propagate_block(
     X: Array,
     R_nom: Array,

@@ -26,7 +26,6 @@ the magnetometer swept) and :func:`observability_report` says, per term, whether
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -255,19 +254,6 @@ class MotionCoverage:
         c = _CELLS @ (h / np.linalg.norm(h, axis=1, keepdims=True)).T  # (26, N)
         self.mag_dirs[np.unique(np.argmax(c, axis=0))] = 1.0
 
-    def add_field_one(self, h: Sequence[float] | Array) -> None:
-        """:meth:`add_field` for one direction h (3,), not necessarily unit (a block's calibrated mean field;
-        issue 15: the general form's numpy calls were ~20 µs a block): the cell with the largest cosine, which
-        is the cell of the largest dot product with h itself (a positive factor does not move the argmax; a
-        zero or NaN h marks cell 0, as :meth:`add_field`'s division does)."""
-        h0, h1, h2 = (float(v) for v in h)
-        best, k_best = -math.inf, 0
-        for k, (c0, c1, c2) in enumerate(_CELLS_T):  # (Python floats: ~26 products beat numpy's calls here)
-            v = c0 * h0 + c1 * h1 + c2 * h2
-            if v > best:  # (the first of equal maxima, as argmax; NaN never wins: cell 0)
-                best, k_best = v, k
-        self.mag_dirs[k_best] = 1.0
-
     def gravity_axes(self) -> list[str]:
         """Body axes (±x, ±y, ±z) that gravity pointed along (within 30°) at some rest."""
         out = []
@@ -301,7 +287,6 @@ class MotionCoverage:
 _CELLS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
                    if (i, j, k) != (0, 0, 0)], float)
 _CELLS /= np.linalg.norm(_CELLS, axis=1, keepdims=True)
-_CELLS_T = [tuple(r) for r in _CELLS.tolist()]
 
 # turns that excite a gyro term (small-angle eqs. 5–6): scale_k → about k; alpha_k couples the two axes
 # other than k; xi_z tilts y towards x (turns about x or y), xi_y tilts z towards x, xi_x z towards y

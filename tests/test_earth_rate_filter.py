@@ -90,6 +90,9 @@ def test_latitude_on_the_command_line(tmp_path: Path) -> None:
         assert r.returncode in (0, 1), r.stderr
         out[name] = json.loads(js.read_text())
         assert "the Earth's rotation is " + ("taken out" if extra else "not taken out") in r.stdout
+        # a cold flight never holds a heading: the words say the bias's σ then carries one rest's horizontal share
+        assert ("vertical part only: no heading" in r.stdout and "the gyro bias's σ is then conservative" in r.stdout
+                ) == bool(extra), r.stdout[-2000:]
     e = out["told"]["meta"]["online"]["observability"]["earth_rate"]
     assert e["latitude_deg"] == pytest.approx(DEFAULT_LATITUDE_DEG)
     assert out["blind"]["meta"]["online"]["observability"]["earth_rate"]["latitude_deg"] is None

@@ -426,5 +426,9 @@ def observability_text(rep: dict[str, Any]) -> list[str]:
             src = e.get("latitude_source")
             told = f"from {src}; " if src and src != "--latitude" else ""
             lines.append(f"the Earth's rotation is taken out of the gyro at latitude {e['latitude_deg']:g}° ({told}"
-                         f"{part}); what is left is allowed for: up to {max(e['allowance_rad_s']):.1e} rad/s per axis")
+                         f"{part}); what is left is allowed for: up to {max(e['allowance_rad_s']):.1e} rad/s per axis"
+                         + ("" if e["heading_known"] else
+                            " — one rest's share of its horizontal part at a heading nobody knows; a log that rests at "
+                            "several headings averages that share down, so the gyro bias's σ is then conservative "
+                            "(on the simulated flights about twice the variance of its error: docs/flight.md)"))
     return lines

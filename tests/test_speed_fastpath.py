@@ -179,6 +179,12 @@ def test_one_call_per_block_equals_two_calls_bit_for_bit(force_div_at: float | N
     on the two-call path: its event comes before that block's update, as on the two-call path), with and
     without a divergence forced in the NIS bookkeeping. Equal to the last bit."""
     d = simulate("flight", 3, duration=50, imu_rate=200).data
+    # motion_kernel calls update_fold_kernel through the module's global: compiled (or loaded) before the global is
+    # swapped for the counting wrapper below, or numba would meet a Python function there where the cache is stale
+    # (after an edit of fastpath.py: "Untyped global name 'update_fold_kernel'")
+    from onlinecal.ukf import warmup
+
+    fastpath.motion_kernel.compile(warmup._types(warmup.SIGNATURES["fastpath:motion_kernel"]))
     calls = {"n": 0}
     real = fastpath.update_fold_kernel
 
@@ -586,7 +592,7 @@ def test_the_field_coverage_of_one_block_equals_the_general_form() -> None:
     from onlinecal.ukf.magdisturb import calibrated_floats
     from onlinecal.ukf.propagate import interp_weights
     from onlinecal.ukf.start import calibrated
-    from onlinecal.ukf.vehicle import _CELLS, MotionCoverage
+    from onlinecal.ukf.vehicle import FIELD_CELLS, MotionCoverage
 
     rng = np.random.default_rng(11)
     cal = OnlineCalibrator(None)
@@ -607,7 +613,7 @@ def test_the_field_coverage_of_one_block_equals_the_general_form() -> None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # (add_field's division of the NaN field)
             cov.add_field(ref)
-        cell = fastpath.field_cell_kernel(x[sl].copy(), m, _CELLS)
+        cell = fastpath.field_cell_kernel(x[sl].copy(), m, FIELD_CELLS)
         assert cov.mag_dirs[cell] == 1.0 and cov.mag_dirs.sum() == 1.0, (k, cell)
         seen.add(cell)
     assert len(seen) == 26

@@ -55,7 +55,7 @@ from .kernels_update import sigma_points_kernel, unscented_motion_kernel, update
 from .layout import DIP, SENSOR_SLICE
 from .magdisturb import calibrated_floats
 from .unscented import UpdateResult
-from .vehicle import _CELLS
+from .vehicle import FIELD_CELLS
 
 if TYPE_CHECKING:
     from .blocks import Blocks
@@ -651,7 +651,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
             _G0, _A0, _M0, DIP, veh.dev_switch_above() if feed else math.inf, use_acc,
             mod.dev_gain, mod.lever_m, var_v, B.m_mean[b], var_mag, hold_a, hold_m, gates,
             motion_consider(cal, has_mag), float(c.update_damping), yaw, cov.max_rate, cov.angle, _TWO,
-            cov.mag_dirs, _CELLS)
+            cov.mag_dirs, FIELD_CELLS)
         if stage == 0:
             cal._diverged("covariance is not positive definite", tl)
             return
@@ -683,7 +683,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
     var_v = st.vehicle_accel_from_dev(cal, dev, dt_blk, tl)
     cal._coverage.add_motion(om, dt_blk, veh.active)
     if use_mag:
-        cal._coverage.mag_dirs[field_cell_kernel(cal.x[_M0 : _M0 + 12], B.m_mean[b], _CELLS)] = 1.0
+        cal._coverage.mag_dirs[field_cell_kernel(cal.x[_M0 : _M0 + 12], B.m_mean[b], FIELD_CELLS)] = 1.0
     var_a = 0.0
     if use_acc:
         g = mod.gravity

@@ -251,7 +251,7 @@ class MotionCoverage:
         h = np.asarray(h_dir, float).reshape(-1, 3)
         if h.size == 0:
             return
-        c = _CELLS @ (h / np.linalg.norm(h, axis=1, keepdims=True)).T  # (26, N)
+        c = FIELD_CELLS @ (h / np.linalg.norm(h, axis=1, keepdims=True)).T  # (26, N)
         self.mag_dirs[np.unique(np.argmax(c, axis=0))] = 1.0
 
     def gravity_axes(self) -> list[str]:
@@ -284,9 +284,11 @@ class MotionCoverage:
         self.flight_s = float(d.get("flight_s", 0.0))
 
 
-_CELLS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
-                   if (i, j, k) != (0, 0, 0)], float)
-_CELLS /= np.linalg.norm(_CELLS, axis=1, keepdims=True)
+# the field coverage's 26 cells (unit directions of a cube's faces, edges and corners): MotionCoverage.add_field
+# here, fastpath.field_cell_kernel in the compiled motion block
+FIELD_CELLS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                        if (i, j, k) != (0, 0, 0)], float)
+FIELD_CELLS /= np.linalg.norm(FIELD_CELLS, axis=1, keepdims=True)
 
 # turns that excite a gyro term (small-angle eqs. 5–6): scale_k → about k; alpha_k couples the two axes
 # other than k; xi_z tilts y towards x (turns about x or y), xi_y tilts z towards x, xi_x z towards y

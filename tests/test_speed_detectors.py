@@ -505,3 +505,43 @@ def test_sigma_is_the_clipped_square_root_bit_for_bit() -> None:
     want = np.sqrt(np.clip(np.diag(cal.P), 0.0, None))
     assert np.array_equal(cal.sigma(), want, equal_nan=True)
     assert np.isnan(cal.sigma()[2]) and cal.sigma()[0] == 0.0 and cal.sigma()[3] == 0.0
+
+
+def test_a_rests_direction_formed_lazily_gives_add_rests_directions_and_time() -> None:
+    """MotionCoverage.add_rest_lazy (the exact vector formed only where the rounding-level approximation could
+    decide otherwise) against add_rest on every block: the same stored directions bit for bit, the same rest time,
+    over drawn rests — many blocks near one attitude, new attitudes, directions within 1e-7 of the 20° boundary,
+    zero and NaN vectors — and the exact vector is formed in only a small share of the blocks."""
+    from onlinecal.ukf.vehicle import MotionCoverage
+
+    rng = np.random.default_rng(4)
+    a, b = MotionCoverage(), MotionCoverage()
+    formed = {"n": 0}
+    blocks = 0
+    for rest in range(120):
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        if rest % 10 == 3 and a.rest_dirs:  # at the 20° boundary of a stored direction, either side by ≤ 1e-7
+            d = np.array(a.rest_dirs[0])
+            perp = np.cross(d, rng.normal(size=3))
+            perp /= np.linalg.norm(perp)
+            ang = math.radians(20) + rng.uniform(-1e-7, 1e-7)
+            u = math.cos(ang) * d + math.sin(ang) * perp
+        for _ in range(int(rng.integers(1, 30))):
+            exact = 9.81 * (u + rng.normal(0, 1e-3, 3)) * rng.uniform(0.5, 2.0)
+            if rest == 50:
+                exact = np.zeros(3)
+            if rest == 51:
+                exact = np.array([np.nan, 0.0, 1.0])
+            approx = exact * (1 + rng.uniform(-3e-16, 3e-16, 3))  # what calibrated_floats gives: rounding apart
+
+            def formed_exact(v=exact):
+                formed["n"] += 1
+                return v
+
+            a.add_rest(exact, 0.1)
+            b.add_rest_lazy(approx.tolist(), 0.1, formed_exact)
+            blocks += 1
+    assert a.rest_dirs == b.rest_dirs and a.rest_s == b.rest_s
+    assert 10 <= len(a.rest_dirs) <= 64
+    assert formed["n"] < 0.25 * blocks, (formed["n"], blocks)

@@ -23,7 +23,7 @@ from .attitude_init import fold_attitude
 from .blocks import Blocks
 from .kernels_unscented import predict_moments_motion, sigma_points, update  # compiled or numpy (ONLINECAL_KERNELS)
 from .layout import ATT, SENSOR_SLICE, index
-from .magdisturb import nis_in_order
+from .magdisturb import calibrated_floats, nis_in_order
 from .measurements import Offsets, ZeroRateModel, gyro_offsets, motion_measurements, rest_measurements
 from .outputs import temp_regressor, trace_row
 from .predict import block_process_noise, propagate_sigma_points
@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 Array = NDArray[np.float64]
 _GYR_BIAS, _GYR_SCALE = index("gyro", "bias"), index("gyro", "scale")
 _ACC_BIAS, _MAG_BIAS = index("accel", "bias"), index("mag", "bias")
+_ACC = SENSOR_SLICE["accel"]
 _UNJUDGED: Array = np.empty(0)  # the σ handed to the disturbance gate for a block it does not judge
 
 
@@ -321,7 +322,9 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
                 cal._event(ev[0], ev[1], tl)
             acc.walk = cal._noise.q_walk
         if acc.na:
-            cal._coverage.add_rest(calibrated(cal, "accel", acc.sa / acc.na), dt_blk)
+            mean = acc.sa / acc.na
+            cal._coverage.add_rest_lazy(calibrated_floats(cal.x[_ACC].tolist(), mean.tolist()), dt_blk,
+                                        lambda: calibrated(cal, "accel", mean))
     # the rest's means are one measurement at its geometry: motion there has nothing new for those terms
     if acc.na:
         cal._learn.seen("accel", acc.sa / acc.na)

@@ -26,6 +26,7 @@ the magnetometer swept) and :func:`observability_report` says, per term, whether
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -241,9 +242,27 @@ class MotionCoverage:
         if not n > 0:
             return
         u = u / n
-        if not self.rest_dirs or float(np.max(np.asarray(self.rest_dirs) @ u)) < math.cos(math.radians(20)):
+        if not self.rest_dirs or float(np.max(np.asarray(self.rest_dirs) @ u)) < _COS20:
             if len(self.rest_dirs) < 64:
                 self.rest_dirs.append(u.tolist())
+
+    def add_rest_lazy(self, approx: Sequence[float], dt: float, exact: Callable[[], Array]) -> None:
+        """:meth:`add_rest` with the exact direction formed only where it can matter (issue 15: the accel's
+        calibration in numpy on one row and this method's numpy were ~90 µs of every rest block). ``approx``
+        (3,): the same vector to rounding (:func:`.magdisturb.calibrated_floats`, ~1e-15 relative); ``exact``
+        gives the vector :meth:`add_rest` takes. Where approx's largest cosine to a stored direction clears
+        cos 20° by :data:`REST_DIR_MARGIN` — a thousand million times the rounding — the exact vector would
+        find the same direction (nothing stored): only the rest's time is added. Otherwise (a new attitude, a
+        near tie, a zero or NaN vector) :meth:`add_rest` decides on the exact vector, so what is stored is
+        always its value and every decision is the same."""
+        a0, a1, a2 = (float(v) for v in approx)
+        n = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        if self.rest_dirs and n > 0:
+            best = max(d[0] * a0 + d[1] * a1 + d[2] * a2 for d in self.rest_dirs) / n
+            if best > _COS20 + REST_DIR_MARGIN:
+                self.rest_s += dt
+                return
+        self.add_rest(exact(), dt)
 
     def add_field(self, h_dir: Array) -> None:
         """Unit field directions (N, 3) in the body frame: marks the cells (26 directions of a cube's
@@ -283,6 +302,9 @@ class MotionCoverage:
         self.mag_dirs = np.asarray(d.get("mag_dirs", np.zeros(26)), float)
         self.flight_s = float(d.get("flight_s", 0.0))
 
+
+_COS20 = math.cos(math.radians(20))  # a rest within 20° of one seen before is the same attitude (add_rest)
+REST_DIR_MARGIN = 1e-6  # add_rest_lazy: a cosine this far beyond cos 20° is decided without the exact vector
 
 # the field coverage's 26 cells (unit directions of a cube's faces, edges and corners): MotionCoverage.add_field
 # here, fastpath.field_cell_kernel in the compiled motion block

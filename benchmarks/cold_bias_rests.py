@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -30,11 +29,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from flight_stats import DEFAULT_LATITUDE_DEG  # noqa: E402
+from flight_stats import DEFAULT_LATITUDE_DEG, config_from_gps  # noqa: E402
 
-from onlinecal.io import write_log  # noqa: E402
-from onlinecal.io.position import log_position  # noqa: E402
-from onlinecal.place import config_at  # noqa: E402
 from onlinecal.sim import simulate  # noqa: E402
 from onlinecal.ukf import replay  # noqa: E402
 
@@ -61,13 +57,7 @@ def main() -> None:
         for seed in range(args.seeds):
             sim = simulate(prof, seed, duration=600.0, imu_rate=200.0, mag_rate=50.0, latitude=DEFAULT_LATITUDE_DEG,
                            earth_rate=True, gps=True)
-            with tempfile.TemporaryDirectory() as tmp:
-                path = f"{tmp}/flight.bin"
-                write_log(path, sim.data)
-                where = log_position(path)
-                assert where is not None
-                config, _ = config_at(where, where.describe(path), None, None)
-            res = replay([sim.data], None, config)
+            res = replay([sim.data], None, config_from_gps(sim.data, None))
             truth, g = sim.truth.calibration, res.calibration.gyro
             e = (np.asarray(g.bias) - np.asarray(truth.gyro.bias)) * np.asarray(truth.gyro.scale)
             s = np.asarray(g.sigma["bias"]) * np.asarray(truth.gyro.scale)

@@ -149,6 +149,26 @@ def wrong_bench(bench: Calibration | None) -> Calibration:
     return bench.replace(accel=SensorCalibration(a.bias + WRONG_ACCEL_BIAS, a.matrix, a.sigma))
 
 
+def config_from_gps(data: Any, config: UKFConfig | None) -> UKFConfig:
+    """What ``replay`` takes from a log's GPS position (onlinecal.io.position, onlinecal.place: the fix's latitude,
+    the World Magnetic Model's declination) on top of ``config``: ``data`` (a simulation with ``gps``) written as a
+    .bin and read back as a user's log is."""
+    import tempfile
+
+    from onlinecal.io import write_log
+    from onlinecal.io.position import log_position
+    from onlinecal.place import config_at
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = f"{tmp}/flight.bin"
+        write_log(path, data)
+        where = log_position(path)
+        if where is None:
+            raise RuntimeError(f"{path}: the simulated log's GPS position was not read back")
+        out, _ = config_at(where, where.describe(path), None, config)
+    return out
+
+
 def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10.0, rate: float = 200.0,
                config: UKFConfig | None = None, latitude: float | None = DEFAULT_LATITUDE_DEG,
                declination: float | None = None, gps: bool = False) -> FlightRun:
@@ -163,19 +183,7 @@ def run_flight(profile: str, seed: int, start: str = "cold", minutes: float = 10
                    latitude=DEFAULT_LATITUDE_DEG if latitude is None else latitude, earth_rate=latitude is not None,
                    declination=declination, gps=gps)
     if gps:
-        import tempfile
-
-        from onlinecal.io import write_log
-        from onlinecal.io.position import log_position
-        from onlinecal.place import config_at
-
-        with tempfile.TemporaryDirectory() as tmp:
-            path = f"{tmp}/flight.bin"
-            write_log(path, sim.data)
-            where = log_position(path)
-            if where is None:
-                raise RuntimeError(f"{path}: the simulated log's GPS position was not read back")
-            config, _ = config_at(where, where.describe(path), None, config)
+        config = config_from_gps(sim.data, config)
     truth = sim.truth.calibration
     init = None if start == "cold" else truth_start(truth) if start == "truth" else bench_calibration(truth, seed)
     if start == "wrongbench":

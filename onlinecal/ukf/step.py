@@ -321,13 +321,13 @@ def rest_step(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, T: Array, n: d
             if ev is not None:
                 cal._event(ev[0], ev[1], tl)
             acc.walk = cal._noise.q_walk
-        if acc.na:
-            mean = acc.sa / acc.na
-            cal._coverage.add_rest_lazy(calibrated_floats(cal.x[_ACC].tolist(), mean.tolist()), dt_blk,
-                                        lambda: calibrated(cal, "accel", mean))
-    # the rest's means are one measurement at its geometry: motion there has nothing new for those terms
     if acc.na:
-        cal._learn.seen("accel", acc.sa / acc.na)
+        a_mean = acc.sa / acc.na
+        if not skip:
+            cal._coverage.add_rest_lazy(calibrated_floats(cal.x[_ACC].tolist(), a_mean.tolist()), dt_blk,
+                                        lambda: calibrated(cal, "accel", a_mean))
+        # the rest's means are one measurement at its geometry: motion there has nothing new for those terms
+        cal._learn.seen("accel", a_mean)
     if use_mag and acc.nm:
         cal._learn.seen("mag", acc.sm / acc.nm)
     x0, P0 = acc.x, acc.P + np.diag(acc.q)

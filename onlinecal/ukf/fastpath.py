@@ -701,7 +701,7 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
 def motion_consider(cal: OnlineCalibrator, mag_in: bool) -> NDArray[np.bool_]:
     """The consider mask of a motion update: the accelerometer's terms held too once a vehicle is detected
     (:attr:`.state.StateLayout.consider_vehicle`) and, on a vehicle detected by its vibration (thrust-borne) in an
-    update without the magnetometer (``mag_in`` False), the gyro's x/y scales
+    update without the magnetometer (``mag_in`` False), the gyro's three scales
     (:attr:`.state.StateLayout.gyro_tilt_terms`), and each sensor's whose geometry this block does not learn
     (:class:`.learning.Learning`, decided by :func:`.step.motion_step`)."""
     ha, hm = cal._learn.held

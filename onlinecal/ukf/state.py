@@ -96,13 +96,17 @@ class StateLayout:
         # accelerate, both of which the accelerometer reads as "level". Learned there, the scales were pulled low on
         # every cold flight (session 20, 12 seeds: mean z of gyro.scale.x/y −2.1/−2.2 fixed-wing, −1.1 multirotor;
         # 0.68–0.92 for a truth of 1.14, "undetermined" at 0.7 of the prior σ); held, −0.8/−0.7, the prior's own
-        # offset. The z scale, which a turn tilts only through the body's tilt, showed no such pull (mean z +0.1,
-        # −0.1) and is learned; rests update all of them, the cross-covariance with the attitude kept through the
-        # motion (eq. 36's attitude change between rests). Not for a hand (a vehicle by the gate's drops, no
+        # offset. The z scale (yaw) too, since session 22: with nothing else to learn it shows the same pull the other
+        # way — a fixed-wing started from its truth but for the z scale (σ 0.2) and the magnetometer ended it 3.09,
+        # 3.35 and 7.38σ off on 3 of 20 seeds ("determined" at σ 0.02–0.04, mean z +1.3), a multirotor 1 of 20 at
+        # −3.02σ; on a cold start the wider other terms had hidden it (mean z +0.1, −0.1). Without a heading
+        # reference a yaw-scale error moves nothing but the tilt the turn's specific force hides. Rests update all
+        # three, the cross-covariance with the attitude kept through the motion (eq. 36's attitude change between
+        # rests). Not for a hand (a vehicle by the gate's drops, no
         # vibration): there the rests' updates through that cross-covariance took MARG's cold gyro.scale.y to
         # 0.75 ± 0.16 (0.985 ± 0.057 learned in motion) and its y-turn closure from 34.6° to 171°
         self.gyro_tilt_terms = np.zeros(n, bool)
-        for a in "xy":
+        for a in AXES:
             self.gyro_tilt_terms[names.index(f"gyro.scale.{a}")] = True
         # a motion block at a geometry already learned (.learning.Learning) holds that sensor's terms as well (the
         # magnetometer's with the dip); consider_mask combines them
@@ -120,7 +124,7 @@ class StateLayout:
 
     def consider_mask(self, vehicle: bool, held_accel: bool, held_mag: bool, gyro_tilt: bool) -> NDArray[np.bool_]:
         """The consider mask of a motion update: :attr:`consider`, the accelerometer's terms on a ``vehicle``
-        (:attr:`consider_vehicle`), the gyro's x/y scales where ``gyro_tilt`` (:attr:`gyro_tilt_terms`;
+        (:attr:`consider_vehicle`), the gyro's three scales where ``gyro_tilt`` (:attr:`gyro_tilt_terms`;
         :func:`.fastpath.motion_consider` decides), and each sensor's whose geometry this block does not learn
         (cached)."""
         key = (vehicle, held_accel, held_mag, gyro_tilt)

@@ -113,6 +113,11 @@ def test_observability_report_in_json_and_words(tmp_path):
     und = {u["term"]: u for u in rep["undetermined"]}
     assert "gyro.scale.x" in und and "gyro.scale.y" in und
     assert "°/s" in und["gyro.scale.x"]["reason"] and "360°" in und["gyro.scale.x"]["motion_needed"]
+    # the turns were there; what the flight lacked was a still reference for them (session 22: the words had asked
+    # for "a full turn about z" of a flight that turned 1783° about z)
+    assert "gyro.scale.z" in und and "no turn had a still reference" in und["gyro.scale.z"]["reason"]
+    assert "gravity does not see a turn about a vertical z" in und["gyro.scale.z"]["reason"]
+    assert "calibrated magnetometer in use" in und["gyro.scale.z"]["motion_needed"]
     assert "thrust" in und["accel.scale.x"]["reason"]  # in flight only rests count for the accel
     assert rep["vehicle"]["active"] is True
     lines = observability_text(rep)

@@ -319,8 +319,10 @@ _XI_TURN = {"x": ("y", "z"), "y": ("x", "z"), "z": ("x", "y")}
 
 
 def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str | None,
-         mag_used: bool = True) -> tuple[str, str]:
-    """(reason, motion needed) for a term the data did not determine."""
+         mag_used: bool = True, thrust: bool = False) -> tuple[str, str]:
+    """(reason, motion needed) for a term the data did not determine; ``thrust``: a vehicle detected by its
+    vibration, in whose motion without the magnetometer the gyro's scales are held (:attr:`.state.StateLayout.
+    gyro_tilt_terms`)."""
     if held:
         return (f"held at its prior: it defines the body frame (gauge: the {gauge}'s frame); no data can "
                 "determine a common rotation of all sensors", "none (a convention, not a measurement)")
@@ -338,8 +340,17 @@ def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str |
             return (f"{cov.rest_s:.0f} s at rest in the log", "hold still (any attitude) for 10 s" if cov.rest_s < 10
                     else "none: the log holds enough rest (its σ did not shrink below half its start value)")
         if p == "scale":
-            return (f"turns about {ax} reached at most {mr[i]:.0f}°/s and {ang[i]:.0f}° in total",
-                    f"a full turn (360°) about {ax} at 30°/s or more, against a still reference "
+            reached = f"turns about {ax} reached at most {mr[i]:.0f}°/s and {ang[i]:.0f}° in total"
+            if thrust and not mag_used:
+                # the turns' size is not what was missing: in flight they had no still reference
+                return (reached + "; in flight the accelerometer measures thrust and no calibrated magnetometer held "
+                        "the heading, so no turn had a still reference there (the scales are held in that motion: "
+                        "only the attitude change between rests counts, as gravity shows it"
+                        + (", and gravity does not see a turn about a vertical z)" if ax == "z" else ")"),
+                        f"a full turn (360°) about {ax} at 30°/s or more with the calibrated magnetometer in use "
+                        "(a tumble that calibrates it, or --init with a bench calibration), or by hand between two "
+                        f"rests{' with z not vertical' if ax == 'z' else ''}")
+            return (reached, f"a full turn (360°) about {ax} at 30°/s or more, against a still reference "
                     "(gravity at rest before and after, or the calibrated magnetometer)")
         turns = _OTHER[ax] if p == "alpha" else _XI_TURN[ax]
         j, k = AXES.index(turns[0]), AXES.index(turns[1])
@@ -388,7 +399,7 @@ def observability_report(names: list[str], sigma: Array, prior_sigma: Array, cov
         if nm not in held and r < ratio:
             det.append(nm)
             continue
-        why, need = _why(nm, cov, vehicle.active, nm in held, gauge, mag_used)
+        why, need = _why(nm, cov, vehicle.active, nm in held, gauge, mag_used, vehicle.vibrating)
         und.append({"term": nm, "sigma_ratio": round(r, 4), "reason": why, "motion_needed": need})
     return {"rule": f"determined: final σ < {ratio:g} × prior σ; the others keep (about) their prior and "
                     "are not calibrated by this data",

@@ -101,9 +101,11 @@ def test_a_fixed_wing_without_magnetometer_does_not_learn_its_yaw_scale_from_the
     through the coordinated-turn dynamics (onlinecal.sim.flight)."""
     import flight_stats as fs
 
+    from onlinecal.model import Calibration
+
     truth_start = fs.truth_start
 
-    def start(truth):  # type: ignore[no-untyped-def]
+    def start(truth: Calibration) -> Calibration:
         c = truth_start(truth).replace(mag=None)
         g = c.sensor("gyro")
         return c.replace(gyro=g.with_sigma({"bias": [0.2] * 3, "scale": [0.005, 0.005, 0.2], "alpha": [0.005] * 3,

@@ -380,9 +380,9 @@ def _gain_P_one_at_a_time(P_pred, Kt, Pxz, S_zz) -> np.ndarray:
 
 
 def test_update_loops_several_chains_at_once_are_bit_identical() -> None:
-    """innovation_kernel's Pxz (two rows at a time) and gain_update_kernel's covariance (four entries at a
-    time) against the one-at-a-time loops they replace: the same bits for n of 1–41 states, m of 3, 6 and 9
-    measurement components and consider states zeroing rows of the gain."""
+    """innovation_kernel's Pxz (a row of Y at a time, into its transpose) and gain_update_kernel's covariance
+    (four entries at a time) against the one-at-a-time loops they replace: the same bits for n of 1–41 states,
+    m of 3, 6 and 9 measurement components and consider states zeroing rows of the gain."""
     from onlinecal.ukf.kernels_update import _solve_small, gain_update_kernel, innovation_kernel
 
     rng = np.random.default_rng(16)

@@ -17,6 +17,10 @@ A result is judged on what can be checked without the truth:
   :mod:`onlinecal.ukf.health`): their NIS is below d by design whenever the vehicle accelerates less than
   the bound, so only a mean *above* 2 d (the bound did not cover the flight) → **degraded**, above 10 d →
   **failed**; the two-sided band judges the updates whose R is the sensor's noise (rests, the ground).
+  A thrust-borne vehicle's magnetometer updates in motion hold its soft iron at the start's σ (Schmidt consider
+  states, :attr:`onlinecal.ukf.state.StateLayout.mag_flight_terms`), which is in every one of their S: where those
+  are most of its updates (``held`` ≥ :data:`HELD_SHARE` × ``updates``) a mean *below* d/2 says the start is
+  better than its σ, not that the noise is overstated — a *note*; above 2 d it is judged as ever.
 * **gravity at rest** (:func:`gravity_checks`), when the raw samples are given (whole, or as the
   :class:`RawDigest` a streamed replay or a live run gathers from every sample it fed): where the calibrated
   gyro and accelerometer are still (blocks of :data:`REST_BLOCK` samples), the calibrated specific force is
@@ -129,6 +133,10 @@ def range_checks(cal: Calibration) -> list[tuple[str, str]]:
     return out
 
 
+HELD_SHARE = 0.5  # share of a sensor's updates made with its soft iron held above which a low NIS is a note
+HELD_STATUS = "below band, soft iron held"
+
+
 def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[str, Any]]:
     """(verdict, reason) per sensor whose mean NIS is out of [d/2, 2d] (degraded) or above 10 d (failed),
     and the per-sensor figures."""
@@ -154,6 +162,8 @@ def nis_checks(nis: dict[str, Any] | None) -> tuple[list[tuple[str, str]], dict[
             status = "failed"
             out.append(("failed", f"{s}: mean NIS {m:.4g} against {NIS_DOF} expected: the calibration does not "
                                   "describe the data"))
+        elif m < lo and int(st.get("held") or 0) >= HELD_SHARE * max(int(st.get("updates") or 0), 1):
+            status = HELD_STATUS  # a note (assess): the held soft iron's σ is in every one of those updates' S
         elif not lo <= m <= hi:
             status = "degraded"
             how = "the data scatter more than the model allows" if m > hi else "the noise is overstated"
@@ -707,6 +717,12 @@ def assess(cal: Calibration, *, nis: dict[str, Any] | None = None, events: Seque
     checks["ranges"] = [r for _, r in ranges]
     nf, checks["nis"] = nis_checks(nis)
     found += nf
+    for s, f in checks["nis"].items():
+        if f.get("status") == HELD_STATUS:
+            notes.append(f"{s}: mean NIS {f['mean']:.3g} below [{f['band'][0]:g}, {f['band'][1]:g}] with its soft "
+                         "iron (scales, axis angles) held at the start's σ in most of its updates (in flight: "
+                         "docs/flight.md): the start is better than its σ says, which the NIS cannot tell from "
+                         "overstated noise; not counted against the verdict")
     ef, ev = event_checks(events)
     found += ef
     checks.update(ev)

@@ -40,7 +40,8 @@ def test_the_legs_option_sets_the_flights_leg_lengths() -> None:
 @pytest.mark.parametrize("seed,start", [(0, "truth"), (1, "cold")])
 def test_ten_minutes_of_loiters_end_within_3_sigma(seed: int, start: str) -> None:
     """10 minutes of 60–180-s legs (turns at one bank for up to three minutes): every one of the 36 terms within 3σ of
-    the truth, started from it (17–19 terms determined) or cold, and the health verdict ok. On six seeds each
+    the truth, started from it (9 terms determined: 17–19 before session 23 held the magnetometer's soft iron in
+    flight) or cold, and the health verdict ok. On six seeds each
     (docs/flight.md, *Loiters*): worst 2.40σ from the truth, 2.65σ cold; prior-free NEES inside its band."""
     from flight_stats import NAMES as TERMS
     from flight_stats import run_flight
@@ -50,4 +51,8 @@ def test_ten_minutes_of_loiters_end_within_3_sigma(seed: int, start: str) -> Non
     assert r.verdict == "ok", r.reasons
     assert r.divergences == 0
     if start == "truth":
-        assert int(r.determined.sum()) >= 12  # a loiter determines the gyro and the magnetometer, not only the bias
+        # a loiter determines more than the gyro bias: the gyro's yaw scale and the magnetometer's hard iron (its soft
+        # iron is held in a thrust-borne vehicle's motion since session 23; 17–19 terms with it learned there)
+        got = {t for t, d in zip(TERMS, r.determined, strict=True) if d}
+        assert {"gyro.scale.z", "mag.bias.x", "mag.bias.y", "mag.bias.z"} <= got, sorted(got)
+        assert not {t for t in got if t.startswith(("mag.scale", "mag.alpha", "mag.xi"))}, sorted(got)

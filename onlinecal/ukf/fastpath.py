@@ -700,13 +700,15 @@ def motion_step_fast(cal: OnlineCalibrator, B: Blocks, b: int, t: Array, n: dict
 
 def motion_consider(cal: OnlineCalibrator, mag_in: bool) -> NDArray[np.bool_]:
     """The consider mask of a motion update: the accelerometer's terms held too once a vehicle is detected
-    (:attr:`.state.StateLayout.consider_vehicle`) and, on a vehicle detected by its vibration (thrust-borne) in an
-    update without the magnetometer (``mag_in`` False), the gyro's three scales
-    (:attr:`.state.StateLayout.gyro_tilt_terms`), and each sensor's whose geometry this block does not learn
-    (:class:`.learning.Learning`, decided by :func:`.step.motion_step`)."""
+    (:attr:`.state.StateLayout.consider_vehicle`) and, on a vehicle detected by its vibration (thrust-borne), the
+    magnetometer's soft iron (:attr:`.state.StateLayout.mag_flight_terms`) and, in an update without the
+    magnetometer (``mag_in`` False), the gyro's three scales (:attr:`.state.StateLayout.gyro_tilt_terms`), and each
+    sensor's whose geometry this block does not learn (:class:`.learning.Learning`, decided by
+    :func:`.step.motion_step`)."""
     ha, hm = cal._learn.held
     veh = cal._vehicle
-    return cal.lay.consider_mask(veh.active, ha, hm, veh.vibrating and not mag_in)
+    thrust = veh.vibrating
+    return cal.lay.consider_mask(veh.active, ha, hm, thrust and not mag_in, thrust)
 
 
 def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: list[float], codes: list[Any],
@@ -740,7 +742,7 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
             cal._nis.reject(s, k_v)
             continue
         if not learn.holds(s):  # (a held look's NIS is not a new sample: .learning.Learning)
-            cal._nis_record(s, v, tl, k_v)
+            cal._nis_record(s, v, tl, k_v, s == "mag" and cal._vehicle.vibrating)
         if code == 1:  # soft-gated
             cal._nis.reject(s, k_v)
     if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands

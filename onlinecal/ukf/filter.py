@@ -243,8 +243,8 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------------------------------
     # health (:mod:`.health`)
-    def _nis_record(self, sensor: str, nis: float, t: float, inflated: float = 0.0) -> None:
-        why = self._nis.record(sensor, nis, t, inflated)
+    def _nis_record(self, sensor: str, nis: float, t: float, inflated: float = 0.0, held: bool = False) -> None:
+        why = self._nis.record(sensor, nis, t, inflated, held)
         if why is not None:
             self._diverged(why, t, sensor)
 

@@ -64,7 +64,8 @@ def _window_summary(st: dict[str, Any], lo: float, hi: float) -> dict[str, Any]:
     """Updates, rejected, windows, mean of the window means and the share inside [lo, hi] of one stream, and
     the shares above and below it (an innovation larger than R says — model error — against a smaller one)."""
     ws = np.array([w[1] for w in st["windows"]]) if st["windows"] else np.zeros(0)
-    return {"updates": st["updates"], "rejected": st["rejected"], "windows": int(ws.size),
+    return {"updates": st["updates"], "rejected": st["rejected"], "held": int(st.get("held", 0)),
+            "windows": int(ws.size),
             "mean": float(ws.mean()) if ws.size else float("nan"),
             "in_band": float(np.mean((ws >= lo) & (ws <= hi))) if ws.size else float("nan"),
             "above_band": float(np.mean(ws > hi)) if ws.size else float("nan"),
@@ -107,11 +108,15 @@ class NisMonitor:
         """Count an update of ``sensor`` gated out (dropped or R inflated); ``inflated`` as in :meth:`record`."""
         self._stream(sensor, inflated)["rejected"] += 1
 
-    def record(self, sensor: str, nis: float, t: float, inflated: float = 0.0) -> str | None:
+    def record(self, sensor: str, nis: float, t: float, inflated: float = 0.0, held: bool = False) -> str | None:
         """Add one NIS of ``sensor`` at log time t s; returns why it diverged, or None. ``inflated`` = k > 0:
-        the update's accel R carried the vehicle disturbance σ_v²·k (its NIS goes to the vehicle stream)."""
+        the update's accel R carried the vehicle disturbance σ_v²·k (its NIS goes to the vehicle stream).
+        ``held``: the update held the sensor's soft iron at its σ (:attr:`.state.StateLayout.mag_flight_terms`),
+        counted as ``held`` beside ``updates`` (:func:`onlinecal.health.nis_checks` reads the share)."""
         self.stats[sensor]["last"] = nis  # the trace's nis.<sensor>: whichever stream
         st = self._stream(sensor, inflated)
+        if held:
+            st["held"] = st.get("held", 0) + 1  # (a key of its own only where it happens: older checkpoints lack it)
         if st is not self.stats[sensor]:
             # vehicle-disturbed: R carries σ_v²·k (k = max(1, τ_v/Δt), one σ_v-measurement per correlation
             # time spread over k blocks); ν's disturbance part has the vehicle's own per-block variance, so

@@ -388,7 +388,9 @@ def gated_bookkeeping(cal: OnlineCalibrator, res: UpdateResult, t: float, record
             cal._nis.reject(s, inflated)
             continue
         if record and not (motion and cal._learn.holds(s)):
-            cal._nis_record(s, nis, t, inflated)  # (a held look's NIS is not a new sample: .learning.Learning)
+            # (a held look's NIS is not a new sample: .learning.Learning; a thrust-borne vehicle's motion holds the
+            # magnetometer's soft iron: .state.StateLayout.mag_flight_terms)
+            cal._nis_record(s, nis, t, inflated, motion and s == "mag" and cal._vehicle.vibrating)
         if status == "soft":
             cal._nis.reject(s, inflated)
 

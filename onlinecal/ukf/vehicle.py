@@ -322,7 +322,7 @@ def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str |
          mag_used: bool = True, thrust: bool = False) -> tuple[str, str]:
     """(reason, motion needed) for a term the data did not determine; ``thrust``: a vehicle detected by its
     vibration, in whose motion without the magnetometer the gyro's scales are held (:attr:`.state.StateLayout.
-    gyro_tilt_terms`)."""
+    gyro_tilt_terms`), and the magnetometer's soft iron always (:attr:`.state.StateLayout.mag_flight_terms`)."""
     if held:
         return (f"held at its prior: it defines the body frame (gauge: the {gauge}'s frame); no data can "
                 "determine a common rotation of all sensors", "none (a convention, not a measurement)")
@@ -376,6 +376,13 @@ def _why(term: str, cov: MotionCoverage, vehicle: bool, held: bool, gauge: str |
                 "turn the vehicle through all attitudes (a tumble, or full turns about three axes) once, "
                 "or start from a bench calibration (--init CAL.json)")
     sw = float(cov.mag_dirs.mean())
+    if thrust and p != "bias":  # held in the vibrating vehicle's motion (.state.StateLayout.mag_flight_terms)
+        return (f"the field swept {100 * sw:.0f} % of the directions around the sensor, but in flight the "
+                "magnetometer's soft iron (scales, axis angles) is held: with the accelerometer measuring thrust "
+                "nothing holds the attitude still while the field turns, and these terms trade off against the tilt "
+                "and the gyro's scales there (only rests count; the bias, the hard iron, is learned in flight)",
+                "full turns about three axes by hand with the motors off, or still rests in varied attitudes, or "
+                "start from a bench calibration (--init CAL.json)")
     if p in ("bias", "scale"):
         return (f"the field swept {100 * sw:.0f} % of the directions around the sensor",
                 f"turn about {_OTHER[ax][0]} and about {_OTHER[ax][1]} so the field sweeps the {ax} axis")

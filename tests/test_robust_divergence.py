@@ -125,7 +125,7 @@ def test_a_divergence_declared_by_the_nis_windows_restarts_the_state() -> None:
     cal.feed(sim.data.slice_imu(0, 4000))
     cold_sig = dv.cold_prior(cal.config, cal.x)[1]
     assert not _restarted_exactly(cal)  # the filter has moved away from its prior
-    cal._nis.record = lambda s, nis, t, inflated=0.0: f"{s} NIS window mean forced"  # type: ignore[method-assign]
+    cal._nis.record = lambda s, nis, t, inflated=0.0, held=False: f"{s} NIS window mean forced"  # type: ignore[method-assign]
     i = 4000
     with pytest.warns(dv.DivergenceWarning, match="diverged at t ="):
         while not any(e["kind"] == "divergence" for e in cal.events) and i < 4500:

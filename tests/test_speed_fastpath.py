@@ -53,11 +53,11 @@ def _run(data, backend: str, fast: bool, init=None, force_div_at: float | None =
                 rec = cal._nis.record
                 fired = {"done": False}
 
-                def forced(s, nis, t, inflated=0.0):
+                def forced(s, nis, t, inflated=0.0, held=False):
                     if not fired["done"]:
                         fired["done"] = True
                         return f"{s} NIS window mean forced"
-                    return rec(s, nis, t, inflated)
+                    return rec(s, nis, t, inflated, held=held)
 
                 cal._nis.record = forced  # type: ignore[method-assign]
                 with pytest.warns(dv.DivergenceWarning):

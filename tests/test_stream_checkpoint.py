@@ -24,7 +24,7 @@ from onlinecal.ukf.magdisturb import MagDisturbanceGate
 
 def _force(cal: OnlineCalibrator) -> None:
     """Every NIS window declares a divergence (the forcing of test_robust_divergence)."""
-    cal._nis.record = lambda s, nis, t, inflated=0.0: f"{s} NIS window mean forced"  # type: ignore[method-assign]
+    cal._nis.record = lambda s, nis, t, inflated=0.0, held=False: f"{s} NIS window mean forced"  # type: ignore[method-assign]
 
 
 def _feed_until_divergence(cal: OnlineCalibrator, d, i: int, n_div: int) -> int:

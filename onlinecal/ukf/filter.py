@@ -244,7 +244,7 @@ class OnlineCalibrator:
     # ------------------------------------------------------------------------------------------
     # health (:mod:`.health`)
     def _nis_record(self, sensor: str, nis: float, t: float, inflated: float = 0.0, held: bool = False) -> None:
-        why = self._nis.record(sensor, nis, t, inflated, held)
+        why = self._nis.record(sensor, nis, t, inflated, held=held)
         if why is not None:
             self._diverged(why, t, sensor)
 

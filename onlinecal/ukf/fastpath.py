@@ -706,9 +706,15 @@ def motion_consider(cal: OnlineCalibrator, mag_in: bool) -> NDArray[np.bool_]:
     sensor's whose geometry this block does not learn (:class:`.learning.Learning`, decided by
     :func:`.step.motion_step`)."""
     ha, hm = cal._learn.held
-    veh = cal._vehicle
-    thrust = veh.vibrating
-    return cal.lay.consider_mask(veh.active, ha, hm, thrust and not mag_in, thrust)
+    thrust = soft_iron_held(cal)
+    return cal.lay.consider_mask(cal._vehicle.active, ha, hm, thrust and not mag_in, thrust)
+
+
+def soft_iron_held(cal: OnlineCalibrator) -> bool:
+    """Whether a motion update now holds the magnetometer's soft iron (:attr:`.state.StateLayout.mag_flight_terms`):
+    on a vehicle detected by its vibration. The one rule for the mask (:func:`motion_consider`) and for the NIS
+    bookkeeping's ``held`` count (:meth:`.health.NisMonitor.record`)."""
+    return cal._vehicle.vibrating
 
 
 def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: list[float], codes: list[Any],
@@ -742,7 +748,7 @@ def _finish_motion(cal: OnlineCalibrator, st: Any, x: Array, P: Array, vals: lis
             cal._nis.reject(s, k_v)
             continue
         if not learn.holds(s):  # (a held look's NIS is not a new sample: .learning.Learning)
-            cal._nis_record(s, v, tl, k_v, s == "mag" and cal._vehicle.vibrating)
+            cal._nis_record(s, v, tl, k_v, s == "mag" and soft_iron_held(cal))
         if code == 1:  # soft-gated
             cal._nis.reject(s, k_v)
     if cal._div.count == k_div:  # else the update declared a divergence: the restarted state stands

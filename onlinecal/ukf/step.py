@@ -390,7 +390,7 @@ def gated_bookkeeping(cal: OnlineCalibrator, res: UpdateResult, t: float, record
         if record and not (motion and cal._learn.holds(s)):
             # (a held look's NIS is not a new sample: .learning.Learning; a thrust-borne vehicle's motion holds the
             # magnetometer's soft iron: .state.StateLayout.mag_flight_terms)
-            cal._nis_record(s, nis, t, inflated, motion and s == "mag" and cal._vehicle.vibrating)
+            cal._nis_record(s, nis, t, inflated, motion and s == "mag" and fastpath.soft_iron_held(cal))
         if status == "soft":
             cal._nis.reject(s, inflated)
 
